@@ -1,0 +1,27 @@
+"""tracklab: Monte-Carlo evaluation of target-tracking filters in JAX.
+
+Importing tracklab turns on JAX's 64-bit mode: ranges of 10⁴–10⁵ m with
+milliradian angles need float64.
+"""
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+from tracklab import filters  # noqa: E402
+from tracklab.engine import FilterResult, FilterSpec, MonteCarloResult, monte_carlo, run_filter  # noqa: E402
+
+__version__ = "0.1.0"
+
+
+def load_experiment(path):
+    """Read and validate an experiment file; ``.run()`` does what ``tracklab run`` does."""
+    from tracklab.config import load_experiment as _load
+
+    return _load(path)
+
+
+__all__ = [
+    "FilterResult", "FilterSpec", "MonteCarloResult", "__version__", "filters", "load_experiment",
+    "monte_carlo", "run_filter",
+]

@@ -1,0 +1,107 @@
+"""The ``tracklab`` command."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from tracklab.errors import ConfigError
+
+
+def _positive_int(s):
+    try:
+        v = int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{s!r} is not an integer") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"{v} must be >= 1")
+    return v
+
+
+def _seed(s):
+    try:
+        v = int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{s!r} is not an integer") from None
+    if not 0 <= v < 2**32:
+        raise argparse.ArgumentTypeError(f"{v} must be in [0, 2**32)")
+    return v
+
+
+def cmd_run(args) -> int:
+    from tracklab.config import MAX_RUNS, load_experiment
+    from tracklab.report import markdown_table
+
+    exp = load_experiment(args.experiment)
+    if args.runs is not None and (args.runs > MAX_RUNS or args.runs * exp.steps > 10**12):
+        raise ConfigError(args.experiment, "--runs", args.runs, f"must be <= {MAX_RUNS} and runs x steps <= 1e12")
+    runs = args.runs or exp.runs
+    out = Path(args.out) if args.out else Path("results") / exp.name
+
+    def progress(done, total):
+        if sys.stderr.isatty() or done == total:
+            print(f"\r{exp.name}: {done}/{total} runs", end="\n" if done == total else "", file=sys.stderr, flush=True)
+
+    doc = exp.run(runs=runs, seed=args.seed, out=out, progress=progress, figures=not args.no_figures)
+    print(f"# {exp.name}: {runs} runs x {exp.steps} steps, window {exp.window[0]}-{exp.window[1]}, "
+          f"{doc['wall_s']:.1f} s (compile {doc['compile_s']:.1f} s)")
+    print(markdown_table(doc), end="")
+    print(f"results written to {out}/")
+    return 0
+
+
+def cmd_list(args) -> int:
+    from tracklab.filters import FILTER_KINDS
+    from tracklab.scenarios import SCENARIO_KINDS
+    from tracklab.sensors import SENSOR_KINDS
+
+    folder = Path(args.dir)
+    print(f"experiments ({folder}/):")
+    files = sorted(folder.glob("*.toml")) if folder.is_dir() else []
+    for p in files:
+        print(f"  {p}")
+    if not files:
+        print("  (none)")
+    print("filter kinds:")
+    for k, (desc, sensors) in FILTER_KINDS.items():
+        print(f"  {k:<16} {desc} [sensors: {', '.join(sensors)}]")
+    print("sensors:")
+    for k, desc in SENSOR_KINDS.items():
+        print(f"  {k:<16} {desc}")
+    print("scenarios:")
+    for k, desc in SCENARIO_KINDS.items():
+        print(f"  {k:<16} {desc}")
+    return 0
+
+
+def build_parser():
+    p = argparse.ArgumentParser(prog="tracklab", description="Monte-Carlo evaluation of tracking filters")
+    sub = p.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("run", help="run an experiment file and write its results folder")
+    r.add_argument("experiment")
+    r.add_argument("--runs", type=_positive_int, help="Monte-Carlo runs (default: the file's)")
+    r.add_argument("--seed", type=_seed, help="random seed (default: the file's)")
+    r.add_argument("--out", help="results folder (default: results/<name>/)")
+    r.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    r.set_defaults(func=cmd_run)
+    ls = sub.add_parser("list", help="experiment files, filter kinds, sensors and scenarios")
+    ls.add_argument("--dir", default="experiments", help="folder of experiment files")
+    ls.set_defaults(func=cmd_list)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("\ninterrupted: previous results left untouched", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,313 @@
+"""Monte-Carlo engine: simulate -> measure -> filter -> streaming statistics.
+
+One jitted function handles a chunk of runs: truth, measurements and the prior
+of run i come from ``fold_in(key, i)``; every filter runs over the chunk with
+``vmap`` inside a time-major ``lax.scan``; the per-run errors are reduced over
+the chunk to per-step sums (and maxima). Chunks are added up on the host, so
+memory grows with ``chunk × steps``, never with ``runs × steps``, and the
+statistics do not depend on the chunk size or on how many devices share a
+chunk (the run axis is sharded over all devices when there are several).
+
+A run in which a filter produces NaN/inf or a covariance that is not positive
+definite is *diverged* for that filter: it is counted and left out of that
+filter's averages; it never stops the batch.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from tracklab.filters.core import Filter, Meas, Prior
+from tracklab.models import Kinematic
+from tracklab.sensors import Sensor
+
+
+@dataclass(frozen=True)
+class FilterSpec:
+    """A filter as the engine runs it: the filter, its label and its reporting layout."""
+
+    label: str
+    kind: str
+    filter: Filter
+    model: Kinematic  # the reporting frame's layout (pos_idx, vel_idx, embed)
+    prior_extra_var: float = 0.0  # prior variance of states beyond position/velocity
+
+    @property
+    def pv_index(self) -> np.ndarray:
+        """Indices of [x, ẋ, y, ẏ, ...] (the truth's CV layout) in the filter's report."""
+        m = self.model
+        return np.array([i for a in range(m.dim) for i in (m.pos_idx[a], m.vel_idx[a])])
+
+
+@dataclass
+class Sums:
+    """Per-step sums over runs for one filter (host-side accumulator)."""
+
+    data: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def add(self, chunk: dict[str, np.ndarray]):
+        for k, v in chunk.items():
+            v = np.asarray(v, dtype=np.float64)
+            if k not in self.data:
+                self.data[k] = v.copy()
+            elif k.startswith("max_"):
+                self.data[k] = np.fmax(self.data[k], v)
+            else:
+                self.data[k] = self.data[k] + v
+
+
+@dataclass
+class MonteCarloResult:
+    runs: int
+    steps: int
+    dt: float
+    dim: int
+    meas_dim: dict[str, int]
+    sums: dict[str, dict[str, np.ndarray]]  # label -> name -> (T, ...)
+    pcrlb: np.ndarray | None  # (T, 2·dim, 2·dim) bound on the CV-layout state, or None
+    wall_s: float
+    compile_s: float
+    labels: list[str]
+    kinds: dict[str, str]
+
+
+def _run_keys(key, idx):
+    keys = jax.vmap(lambda i: jax.random.fold_in(key, i))(idx)
+    split = jax.vmap(lambda k: jax.random.split(k, 3))(keys)
+    return split[:, 0], split[:, 1], split[:, 2]
+
+
+def _filter_chunk(spec: FilterSpec, params, truth, z, prior_cv, P0_cv, live, dt):
+    """Run one filter over a chunk; reduce to per-step sums over healthy runs."""
+    flt = spec.filter
+    pv = spec.pv_index
+    n_rep = len(pv)
+    d = n_rep // 2
+    B, T = z.shape[0], z.shape[1]
+
+    x0, P0 = spec.model.embed(prior_cv, P0_cv, spec.prior_extra_var)
+    state = jax.vmap(flt.init, in_axes=(None, 0))(params, Prior(x0, jnp.broadcast_to(P0, (B,) + P0.shape)))
+    step = jax.vmap(flt.step, in_axes=(None, 0, 0))
+    t = dt * jnp.arange(1, T + 1, dtype=z.dtype)
+    ones = jnp.ones((B,), bool)
+
+    def body(state, inp):
+        z_k, truth_k, t_k = inp
+        state, out = step(params, state, Meas(z_k, jnp.full((B,), t_k), ones))
+        e = out.x[:, pv] - truth_k  # (B, 2d) CV layout
+        Pe = out.P[:, pv[:, None], pv[None, :]]
+        L = jnp.linalg.cholesky(Pe)
+        y = jax.scipy.linalg.solve_triangular(L, e[..., None], lower=True)[..., 0]
+        nees = jnp.sum(y * y, axis=-1)
+        Ls = jnp.linalg.cholesky(out.S)
+        u = jax.scipy.linalg.solve_triangular(Ls, out.nu[..., None], lower=True)[..., 0]
+        nis = jnp.where(out.valid, jnp.sum(u * u, axis=-1), 0.0)
+        bad = ~(jnp.isfinite(nees) & jnp.all(jnp.isfinite(out.x), axis=-1))
+        bad = bad | (out.valid & ~jnp.isfinite(nis))
+        return state, (e, nees, nis, out.valid, bad)
+
+    zs = jnp.swapaxes(z, 0, 1)
+    truths = jnp.swapaxes(truth[:, 1:], 0, 1)
+    _, (e, nees, nis, upd, bad) = jax.lax.scan(body, state, (zs, truths, t))  # (T, B, ...)
+
+    diverged = jnp.any(bad, axis=0)  # (B,)
+    ok = live & ~diverged
+    okf = ok.astype(z.dtype)
+    e = jnp.where(ok[None, :, None], e, 0.0)
+    ep, ev = e[..., 0::2], e[..., 1::2]  # positions, velocities (T, B, d)
+    updf = (upd & ok[None, :]).astype(z.dtype)
+    neg = -jnp.inf
+    return {
+        "count": jnp.broadcast_to(jnp.sum(okf), (T,)),
+        "diverged": jnp.sum((live & diverged).astype(z.dtype)),
+        "sum_pos": jnp.sum(ep, axis=1),
+        "sum_vel": jnp.sum(ev, axis=1),
+        "sumsq_pos": jnp.sum(ep**2, axis=1),
+        "sumsq_vel": jnp.sum(ev**2, axis=1),
+        "max_abs_pos": jnp.max(jnp.where(ok[None, :, None], jnp.abs(ep), neg), axis=1),
+        "max_err_pos": jnp.max(jnp.where(ok[None, :], jnp.linalg.norm(ep, axis=-1), neg), axis=1),
+        "max_err_vel": jnp.max(jnp.where(ok[None, :], jnp.linalg.norm(ev, axis=-1), neg), axis=1),
+        "sum_nees": jnp.sum(jnp.where(ok[None, :], nees, 0.0), axis=1),
+        "sum_nis": jnp.sum(jnp.where(ok[None, :], nis, 0.0) * updf, axis=1),
+        "count_nis": jnp.sum(updf, axis=1),
+    }
+
+
+def make_chunk_fn(scenario, sensor: Sensor, specs: Sequence[FilterSpec], P0_cv, dt):
+    """The jitted per-chunk computation: (params_list, key, idx, live) -> sums."""
+    d = scenario.dim
+    P0_cv = jnp.asarray(P0_cv)
+    L0 = jnp.linalg.cholesky(P0_cv)
+
+    def chunk(params_list, key, idx, live):
+        k_truth, k_meas, k_prior = _run_keys(key, idx)
+        truth = jax.vmap(scenario.simulate)(k_truth)  # (B, T+1, 2d)
+        pos = truth[:, 1:, 0::2]
+        z = jax.vmap(sensor.measure)(k_meas, pos)  # (B, T, m)
+        w = jax.vmap(lambda k: jax.random.normal(k, (2 * d,), truth.dtype))(k_prior)
+        prior = truth[:, 0] + w @ L0.T
+        info = jax.vmap(jax.vmap(sensor.position_information))(pos)  # (B, T, d, d)
+        out = {"_info": jnp.sum(jnp.where(live[:, None, None, None], info, 0.0), axis=0),
+               "_live": jnp.sum(live.astype(truth.dtype))}
+        for spec, params in zip(specs, params_list):
+            out[spec.label] = _filter_chunk(spec, params, truth, z, prior, P0_cv, live, dt)
+        return out
+
+    return jax.jit(chunk)
+
+
+def _run_sharding():
+    devices = jax.devices()
+    if len(devices) == 1:
+        return None, 1
+    mesh = jax.sharding.Mesh(np.array(devices), ("runs",))
+    return jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("runs")), len(devices)
+
+
+def monte_carlo(
+    scenario,
+    sensor: Sensor,
+    specs: Sequence[FilterSpec],
+    runs: int,
+    key,
+    P0_cv,
+    *,
+    chunk: int | None = None,
+    params: Sequence[Any] | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> MonteCarloResult:
+    """Per-step error statistics of several filters over ``runs`` Monte-Carlo runs.
+
+    ``P0_cv`` is the prior covariance in CV layout: run i's prior mean is the
+    truth one period before the first measurement plus a N(0, P0) draw, shared
+    by all filters in that run.
+    """
+    dt = float(scenario.dt)
+    sharding, n_dev = _run_sharding()
+    chunk = int(min(chunk or 1000, runs))
+    chunk = -(-chunk // n_dev) * n_dev  # a multiple of the device count
+    fn = make_chunk_fn(scenario, sensor, specs, P0_cv, dt)
+    params_list = list(params) if params is not None else [s.filter.params for s in specs]
+    if isinstance(key, int):
+        key = jax.random.key(key)
+
+    acc = {s.label: Sums() for s in specs}
+    info = np.zeros((scenario.steps, scenario.dim, scenario.dim))
+    t_start = time.perf_counter()
+    compile_s = 0.0
+    n_chunks = -(-runs // chunk)
+    for c in range(n_chunks):
+        idx = np.arange(c * chunk, (c + 1) * chunk, dtype=np.uint32)
+        live = idx < runs
+        idx_j, live_j = jnp.asarray(idx), jnp.asarray(live)
+        if sharding is not None:
+            idx_j, live_j = jax.device_put(idx_j, sharding), jax.device_put(live_j, sharding)
+        t0 = time.perf_counter()
+        out = jax.device_get(fn(params_list, key, idx_j, live_j))
+        if c == 0:
+            compile_s = time.perf_counter() - t0
+        info += out.pop("_info")
+        out.pop("_live")
+        for label, sums in out.items():
+            acc[label].add(sums)
+        if progress:
+            progress(min((c + 1) * chunk, runs), runs)
+    wall = time.perf_counter() - t_start
+
+    return MonteCarloResult(
+        runs=runs,
+        steps=scenario.steps,
+        dt=dt,
+        dim=scenario.dim,
+        meas_dim={s.label: _meas_dim(s, sensor) for s in specs},
+        sums={label: a.data for label, a in acc.items()},
+        pcrlb=_pcrlb(scenario, np.asarray(P0_cv), info / runs),
+        wall_s=wall,
+        compile_s=compile_s,
+        labels=[s.label for s in specs],
+        kinds={s.label: s.kind for s in specs},
+    )
+
+
+def _meas_dim(spec: FilterSpec, sensor: Sensor) -> int:
+    return sensor.dim if spec.kind == "cmkf" else sensor.m
+
+
+def _pcrlb(scenario, P0_cv, info_pos):
+    """Tichavský et al. recursion (REFERENCE_MATH §5) for linear-Gaussian dynamics.
+
+    J_{k+1} = (Q + F J_k⁻¹ Fᵀ)⁻¹ + E[H̃ᵀ R⁻¹ H̃], the expectation averaged over
+    the simulated truths; J_0 = P0⁻¹. Returns J⁻¹ per measurement step.
+    """
+    lg = scenario.linear_gaussian()
+    if lg is None:
+        return None
+    F, Q = lg
+    d = scenario.dim
+    pos = np.arange(d) * 2
+    Jinv = P0_cv.copy()
+    out = np.empty((len(info_pos),) + P0_cv.shape)
+    for k, Ik in enumerate(info_pos):  # host-side recursion over a (T, n, n) array
+        Jz = np.zeros_like(P0_cv)
+        Jz[np.ix_(pos, pos)] = Ik
+        J = np.linalg.inv(Q + F @ Jinv @ F.T) + Jz
+        Jinv = np.linalg.inv(J)
+        out[k] = Jinv
+    return out
+
+
+# ------------------------------------------------------------------ user measurements
+
+
+@dataclass(frozen=True)
+class FilterResult:
+    x: jax.Array  # (..., T, n) filtered means
+    P: jax.Array  # (..., T, n, n) filtered covariances
+    x_pred: jax.Array  # (..., T, n) one-step predictions
+    nu: jax.Array  # (..., T, m) innovations (0 where no update)
+    S: jax.Array  # (..., T, m, m) innovation covariances
+    valid: jax.Array  # (..., T) update happened
+
+
+def run_filter(flt: Filter, z, *, x0, P0, params=None, dt: float = 1.0) -> FilterResult:
+    """Run a filter over a user's measurements.
+
+    ``z`` is (T, m) or (N, T, m); a row of NaN is a missed detection
+    (predict-only). ``x0, P0`` is the prior one sample period before ``z[0]``;
+    each step predicts, then updates with ``z[k]``.
+    """
+    params = flt.params if params is None else params
+    z = jnp.asarray(z)
+    batched = z.ndim == 3
+    zb = z if batched else z[None]
+    N, T = zb.shape[0], zb.shape[1]
+    x0 = jnp.broadcast_to(jnp.asarray(x0, zb.dtype), (N,) + jnp.shape(x0)[-1:])
+    P0 = jnp.broadcast_to(jnp.asarray(P0, zb.dtype), (N,) + jnp.shape(P0)[-2:])
+    out = _run_filter_jit(flt.init, flt.step, params, zb, x0, P0, float(dt))
+    if not batched:
+        out = jax.tree_util.tree_map(lambda a: a[0], out)
+    return FilterResult(*out)
+
+
+def _run_filter_impl(init, step, params, z, x0, P0, dt):
+    N, T = z.shape[0], z.shape[1]
+    state = jax.vmap(init, in_axes=(None, 0))(params, Prior(x0, P0))
+    step = jax.vmap(step, in_axes=(None, 0, 0))
+    t = dt * jnp.arange(1, T + 1, dtype=z.dtype)
+
+    def body(s, inp):
+        z_k, t_k = inp
+        s, out = step(params, s, Meas(z_k, jnp.full((N,), t_k), jnp.ones((N,), bool)))
+        return s, out
+
+    _, out = jax.lax.scan(body, state, (jnp.swapaxes(z, 0, 1), t))
+    return tuple(jnp.swapaxes(a, 0, 1) for a in (out.x, out.P, out.x_pred, out.nu, out.S, out.valid))
+
+
+_run_filter_jit = jax.jit(_run_filter_impl, static_argnums=(0, 1, 6))

@@ -1,0 +1,104 @@
+"""The filter contract and the Kalman update shared by every Gaussian filter.
+
+A filter is a small immutable bundle of pure functions over pytrees, in the
+spirit of optax's ``GradientTransformation``::
+
+    state = flt.init(params, prior)
+    state, out = flt.step(params, state, meas)
+
+``flt.params`` holds the default parameters (a pytree of arrays: what
+``jax.grad`` and optax see). Static structure (dimensions, model choice) lives
+in the closures.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+
+class Prior(NamedTuple):
+    """Gaussian prior one sample period before the first measurement."""
+
+    x: jax.Array
+    P: jax.Array
+
+
+class Meas(NamedTuple):
+    """One measurement: value, time and validity (False = missed detection)."""
+
+    z: jax.Array
+    t: jax.Array
+    valid: jax.Array
+
+
+class Out(NamedTuple):
+    """What a filter reports after each step.
+
+    ``x``/``P`` are the filtered mean and covariance in the reporting frame
+    (Cartesian, in the layout of the filter's motion model); ``x_pred`` is the
+    one-step prediction in the same frame; ``nu``/``S`` are the innovation and
+    its covariance in the filter's measurement space (zero-filled on a missed
+    detection); ``valid`` says whether an update happened.
+    """
+
+    x: jax.Array
+    P: jax.Array
+    x_pred: jax.Array
+    nu: jax.Array
+    S: jax.Array
+    valid: jax.Array
+
+
+class Filter(NamedTuple):
+    init: Callable[[Any, Prior], Any]
+    step: Callable[[Any, Any, Meas], tuple[Any, Out]]
+    params: Any
+
+
+class Gaussian(NamedTuple):
+    """The state of every Kalman-type filter here: mean and covariance."""
+
+    x: jax.Array
+    P: jax.Array
+
+
+def symmetrise(P):
+    return 0.5 * (P + jnp.swapaxes(P, -1, -2))
+
+
+def kalman_update(x, P, nu, H, R):
+    """Kalman measurement update in Joseph form; returns (x, P, S)."""
+    S = H @ P @ H.T + R
+    PHt = P @ H.T
+    K = jnp.linalg.solve(S, PHt.T).T  # K = P Hᵀ S⁻¹ (S symmetric)
+    x = x + K @ nu
+    IKH = jnp.eye(P.shape[-1], dtype=P.dtype) - K @ H
+    P = IKH @ P @ IKH.T + K @ R @ K.T
+    return x, symmetrise(P), S
+
+
+def wrap_angle(a):
+    """Wrap to (-π, π]."""
+    return jnp.pi - jnp.mod(jnp.pi - a, 2.0 * jnp.pi)
+
+
+def wrap_components(nu, angle_mask):
+    """Wrap the innovation components flagged by a static boolean mask."""
+    if angle_mask is None or not any(angle_mask):
+        return nu
+    mask = jnp.asarray(angle_mask)
+    return jnp.where(mask, wrap_angle(nu), nu)
+
+
+def select(valid, a, b):
+    """Pytree-wise ``where(valid, a, b)`` (a missed detection keeps ``b``)."""
+    return jax.tree_util.tree_map(lambda u, v: jnp.where(valid, u, v), a, b)
+
+
+def masked_meas(meas: Meas):
+    """Measurement with NaNs replaced by zeros, and its validity."""
+    valid = meas.valid & jnp.all(jnp.isfinite(meas.z))
+    return jnp.where(valid, meas.z, 0.0), valid

@@ -1,0 +1,189 @@
+"""Kalman-family filters on Cartesian motion models (paper 000 §3.1, §3.3, §4.2).
+
+* ``kf``            — linear Kalman filter (public: any F, H, Q, R).
+* ``ekf``           — extended KF, Jacobians by autodiff (public: any f, h).
+* ``cmkf``          — converted-measurement KF (plain / additive / unbiased).
+* ``sequential_ekf``— paper 000 §4.2: angle innovations first, re-linearise at
+  the intermediate estimate, then the range innovation.
+
+Filters built for experiments (``model_*``) take parameters
+``{"q": process-noise variance, "r": measurement-noise variances (m,)}``, so
+noise levels can be swept and tuned; the public constructors take matrices.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from tracklab.filters.core import (
+    Filter,
+    Gaussian,
+    Out,
+    kalman_update,
+    masked_meas,
+    select,
+    symmetrise,
+    wrap_components,
+)
+from tracklab.sensors import CONVERSIONS
+
+
+def gaussian_filter(params, predict, update, report=None, init=None) -> Filter:
+    """Assemble a Filter from predict/update halves.
+
+    predict(params, g) -> g⁻;  update(params, g⁻, z) -> (g⁺, ν, S);
+    report(g) -> (x, P) in the reporting frame (identity by default);
+    init(params, prior) -> g (the prior as a Gaussian by default).
+    A missed detection (``meas.valid`` False or NaN in z) keeps the prediction.
+    """
+    report = report or (lambda g: (g.x, g.P))
+    init = init or (lambda params, prior: Gaussian(jnp.asarray(prior.x), jnp.asarray(prior.P)))
+
+    def step(params, g, meas):
+        z, valid = masked_meas(meas)
+        pred = predict(params, g)
+        post, nu, S = update(params, pred, z)
+        post = select(valid, post, pred)
+        x, P = report(post)
+        x_pred, _ = report(pred)
+        nu = jnp.where(valid, nu, 0.0)
+        return post, Out(x=x, P=P, x_pred=x_pred, nu=nu, S=S, valid=valid)
+
+    return Filter(init=init, step=step, params=params)
+
+
+def _linear_predict(F, Q, g):
+    return Gaussian(F @ g.x, symmetrise(F @ g.P @ F.T + Q))
+
+
+# --------------------------------------------------------------------------- public
+
+
+def kf(F, H, Q, R) -> Filter:
+    """Linear Kalman filter x' = F x + w, z = H x + v; params {F, H, Q, R}."""
+    params = {k: jnp.asarray(v) for k, v in dict(F=F, H=H, Q=Q, R=R).items()}
+
+    def predict(p, g):
+        return _linear_predict(p["F"], p["Q"], g)
+
+    def update(p, g, z):
+        nu = z - p["H"] @ g.x
+        x, P, S = kalman_update(g.x, g.P, nu, p["H"], p["R"])
+        return Gaussian(x, P), nu, S
+
+    return gaussian_filter(params, predict, update)
+
+
+def ekf(f, h, Q, R, *, angle_mask=None) -> Filter:
+    """Extended Kalman filter for x' = f(x) + w, z = h(x) + v; params {Q, R}.
+
+    Jacobians of f and h come from ``jax.jacfwd``; innovation components flagged
+    in ``angle_mask`` are wrapped to (-π, π].
+    """
+    params = {"Q": jnp.asarray(Q), "R": jnp.asarray(R)}
+
+    def predict(p, g):
+        F = jax.jacfwd(f)(g.x)
+        return Gaussian(f(g.x), symmetrise(F @ g.P @ F.T + p["Q"]))
+
+    def update(p, g, z):
+        H = jax.jacfwd(h)(g.x)
+        nu = wrap_components(z - h(g.x), angle_mask)
+        x, P, S = kalman_update(g.x, g.P, nu, H, p["R"])
+        return Gaussian(x, P), nu, S
+
+    return gaussian_filter(params, predict, update)
+
+
+# ------------------------------------------------------------ experiment filters
+
+
+def noise_params(q, r):
+    return {"q": jnp.asarray(q, dtype=float), "r": jnp.asarray(r, dtype=float)}
+
+
+def _model_predict(model):
+    F = jnp.asarray(model.F)
+
+    def predict(p, g):
+        return _linear_predict(F, model.Q(p["q"]), g)
+
+    return predict
+
+
+def _h_state(model, sensor):
+    pos = np.array(model.pos_idx)
+    return lambda x: sensor.h(x[pos])
+
+
+def model_kf(model, sensor, params) -> Filter:
+    """KF with a linear (Cartesian position) sensor."""
+    H = np.zeros((sensor.m, model.n))
+    H[np.arange(sensor.m), np.array(model.pos_idx)] = 1.0
+    H = jnp.asarray(H)
+
+    def update(p, g, z):
+        nu = z - H @ g.x
+        x, P, S = kalman_update(g.x, g.P, nu, H, jnp.diag(p["r"]))
+        return Gaussian(x, P), nu, S
+
+    return gaussian_filter(params, _model_predict(model), update)
+
+
+def model_ekf(model, sensor, params) -> Filter:
+    """EKF: H = ∂h/∂x at the prediction (paper 000 eq. 21)."""
+    h = _h_state(model, sensor)
+
+    def update(p, g, z):
+        H = jax.jacfwd(h)(g.x)
+        nu = wrap_components(z - h(g.x), sensor.angle_mask)
+        x, P, S = kalman_update(g.x, g.P, nu, H, jnp.diag(p["r"]))
+        return Gaussian(x, P), nu, S
+
+    return gaussian_filter(params, _model_predict(model), update)
+
+
+def model_cmkf(model, sensor, params, debias="plain") -> Filter:
+    """Converted-measurement KF (paper 000 §3.1; REFERENCE_MATH §4 variants)."""
+    convert = CONVERSIONS[debias]
+    H = np.zeros((model.dim, model.n))
+    H[np.arange(model.dim), np.array(model.pos_idx)] = 1.0
+    H = jnp.asarray(H)
+
+    def update(p, g, z):
+        zc, Rc = convert(z, jnp.sqrt(p["r"]))
+        nu = zc - H @ g.x
+        x, P, S = kalman_update(g.x, g.P, nu, H, Rc)
+        return Gaussian(x, P), nu, S
+
+    return gaussian_filter(params, _model_predict(model), update)
+
+
+def model_sequential_ekf(model, sensor, params) -> Filter:
+    """Sequential EKF (paper 000 §4.2, eqs. 31–34).
+
+    Scalar EKF updates in the order angle(s) then range, each re-linearised at
+    the estimate left by the previous one. The innovations are reported in the
+    sensor's component order with S = diag of the scalar innovation variances,
+    so NIS is their sum (χ² with m degrees of freedom).
+    """
+    h = _h_state(model, sensor)
+    m = sensor.m
+    order = [i for i in range(m) if sensor.angle_mask[i]] + [i for i in range(m) if not sensor.angle_mask[i]]
+
+    def update(p, g, z):
+        x, P = g.x, g.P
+        nus, Ss = [None] * m, [None] * m
+        for i in order:  # static loop over measurement components (m ≤ 3)
+            hi = lambda s, i=i: h(s)[i]
+            Hi = jax.grad(hi)(x)[None, :]
+            nu_i = z[i] - hi(x)
+            if sensor.angle_mask[i]:
+                nu_i = wrap_components(nu_i[None], (True,))[0]
+            x, P, S_i = kalman_update(x, P, nu_i[None], Hi, p["r"][i][None, None])
+            nus[i], Ss[i] = nu_i, S_i[0, 0]
+        return Gaussian(x, P), jnp.stack(nus), jnp.diag(jnp.stack(Ss))
+
+    return gaussian_filter(params, _model_predict(model), update)

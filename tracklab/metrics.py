@@ -1,0 +1,131 @@
+"""Error statistics from the engine's per-step sums.
+
+Per step (over healthy runs): RMSE per axis, of position and of velocity;
+mean error (bias) per axis; maximum error; average NEES and NIS with their
+two-sided 95 % χ² intervals; the PCRLB on position. Over the report window
+(1-based measurement steps, both ends included): time-averaged RMSE (root of
+the mean of the per-step mean-square errors), maximum error, mean bias, mean
+NEES/NIS and the fraction of steps whose average lies inside its interval.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from jax.scipy.special import gammainc
+
+AXES = ("x", "y", "z")
+
+
+def chi2_quantile(p, dof):
+    """Quantile of the χ² distribution (bisection on the regularised gamma)."""
+    p, dof = np.broadcast_arrays(np.asarray(p, float), np.asarray(dof, float))
+    lo = np.zeros_like(dof)
+    hi = np.maximum(dof + 20.0 * np.sqrt(2.0 * np.maximum(dof, 1.0)) + 50.0, 1.0)
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        below = np.asarray(gammainc(dof / 2.0, mid / 2.0)) < p
+        lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+    return 0.5 * (lo + hi)
+
+
+def average_chi2_interval(dof, n, level=0.95):
+    """Interval for the average of n independent χ²(dof) values: χ²(n·dof)/n quantiles."""
+    n = np.maximum(np.asarray(n, float), 1.0)
+    a = (1.0 - level) / 2.0
+    return chi2_quantile(a, n * dof) / n, chi2_quantile(1.0 - a, n * dof) / n
+
+
+def _div(a, b):
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(b > 0, a / np.where(b > 0, b, 1.0), np.nan)
+
+
+def per_step(sums, dim, meas_dim, runs):
+    """Per-step series for one filter from its sums."""
+    c = sums["count"]
+    s = {}
+    msep = _div(sums["sumsq_pos"], c[:, None])
+    msev = _div(sums["sumsq_vel"], c[:, None])
+    bias = _div(sums["sum_pos"], c[:, None])
+    for a in range(dim):
+        s[f"rmse_{AXES[a]}"] = np.sqrt(msep[:, a])
+        s[f"mean_err_{AXES[a]}"] = bias[:, a]
+        s[f"max_abs_err_{AXES[a]}"] = np.where(c > 0, sums["max_abs_pos"][:, a], np.nan)
+    s["mse_pos"] = msep.sum(-1)
+    s["mse_vel"] = msev.sum(-1)
+    s["rmse_pos"] = np.sqrt(s["mse_pos"])
+    s["rmse_vel"] = np.sqrt(s["mse_vel"])
+    s["max_err_pos"] = np.where(c > 0, sums["max_err_pos"], np.nan)
+    s["max_err_vel"] = np.where(c > 0, sums["max_err_vel"], np.nan)
+    s["nees"] = _div(sums["sum_nees"], c)
+    s["nees_lo"], s["nees_hi"] = average_chi2_interval(2 * dim, c)
+    s["nis"] = _div(sums["sum_nis"], sums["count_nis"])
+    s["nis_lo"], s["nis_hi"] = average_chi2_interval(meas_dim, sums["count_nis"])
+    s["healthy_runs"] = c
+    return s
+
+
+def summarise(series, window, pcrlb_pos=None, diverged=0.0, runs=0):
+    """Time-averaged summary of per-step series over a 1-based inclusive window."""
+    a, b = window
+    w = slice(a - 1, b)
+
+    def inside(v, lo, hi):
+        v, lo, hi = v[w], lo[w], hi[w]
+        ok = np.isfinite(v)
+        return float(np.mean((v[ok] >= lo[ok]) & (v[ok] <= hi[ok]))) if ok.any() else float("nan")
+
+    out = {
+        "rmse_pos": float(np.sqrt(np.mean(series["mse_pos"][w]))),
+        "rmse_vel": float(np.sqrt(np.mean(series["mse_vel"][w]))),
+    }
+    for ax in AXES:
+        if f"rmse_{ax}" in series:
+            out[f"rmse_{ax}"] = float(np.sqrt(np.mean(np.square(series[f"rmse_{ax}"][w]))))
+            out[f"mean_err_{ax}"] = float(np.mean(series[f"mean_err_{ax}"][w]))
+    out["max_err_pos"] = float(np.max(series["max_err_pos"][w]))
+    out["max_err_vel"] = float(np.max(series["max_err_vel"][w]))
+    out["nees"] = float(np.mean(series["nees"][w]))
+    out["nees_in_bounds"] = inside(series["nees"], series["nees_lo"], series["nees_hi"])
+    out["nis"] = float(np.nanmean(series["nis"][w])) if np.isfinite(series["nis"][w]).any() else float("nan")
+    out["nis_in_bounds"] = inside(series["nis"], series["nis_lo"], series["nis_hi"])
+    if pcrlb_pos is not None:
+        out["pcrlb_pos"] = float(np.sqrt(np.mean(np.square(pcrlb_pos[w]))))
+        out["rmse_pos_over_pcrlb"] = out["rmse_pos"] / out["pcrlb_pos"]
+    out["diverged"] = int(diverged)
+    out["runs"] = int(runs)
+    return out
+
+
+def pcrlb_series(pcrlb, dim):
+    """Position bounds per axis and in total from J⁻¹ (CV layout)."""
+    if pcrlb is None:
+        return {}
+    out = {}
+    tot = np.zeros(len(pcrlb))
+    for a in range(dim):
+        v = pcrlb[:, 2 * a, 2 * a]
+        out[f"pcrlb_{AXES[a]}"] = np.sqrt(v)
+        tot += v
+    out["pcrlb_pos"] = np.sqrt(tot)
+    vel = sum(pcrlb[:, 2 * a + 1, 2 * a + 1] for a in range(dim))
+    out["pcrlb_vel"] = np.sqrt(vel)
+    return out
+
+
+def statistics(result, window):
+    """All statistics of a MonteCarloResult: {'bounds': {...}, 'filters': {label: {...}}}."""
+    bounds = pcrlb_series(result.pcrlb, result.dim)
+    filters = {}
+    for label in result.labels:
+        sums = result.sums[label]
+        series = per_step(sums, result.dim, result.meas_dim[label], result.runs)
+        summary = summarise(
+            series,
+            window,
+            bounds.get("pcrlb_pos"),
+            diverged=float(np.asarray(sums["diverged"]).sum()),
+            runs=result.runs,
+        )
+        filters[label] = {"kind": result.kinds[label], "summary": summary, "series": series}
+    return {"bounds": bounds, "filters": filters}

@@ -1,0 +1,211 @@
+"""Results folders: stats.json, table.md, table.csv and figures, written atomically.
+
+A run is written into a hidden temporary folder beside its destination, which
+is renamed into place only when complete: an interrupted run leaves the
+previous results untouched.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from tracklab.metrics import AXES, statistics
+
+COLUMNS = [
+    ("rmse_pos", "RMSE pos (m)", "{:.2f}"),
+    ("rmse_vel", "RMSE vel (m/s)", "{:.2f}"),
+    ("rmse_pos_over_pcrlb", "RMSE/PCRLB", "{:.3f}"),
+    ("max_err_pos", "max err pos (m)", "{:.1f}"),
+    ("mean_err_x", "mean err x (m)", "{:.2f}"),
+    ("mean_err_y", "mean err y (m)", "{:.2f}"),
+    ("mean_err_z", "mean err z (m)", "{:.2f}"),
+    ("nees", "NEES", "{:.2f}"),
+    ("nees_in_bounds", "NEES in 95% (%)", "{:.0%}"),
+    ("nis", "NIS", "{:.2f}"),
+    ("diverged", "diverged", "{:d}"),
+    ("runs", "runs", "{:d}"),
+]
+
+
+def _fmt(v, spec):
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "—"
+    s = spec.format(v)
+    return s.rstrip("%") if spec.endswith("%}") else s
+
+
+def _columns(stats):
+    cols = []
+    for key, title, spec in COLUMNS:
+        if any(key in f["summary"] for f in stats["filters"].values()):
+            cols.append((key, title, spec))
+    return cols
+
+
+def table_rows(stats):
+    cols = _columns(stats)
+    header = ["filter", "kind"] + [t for _, t, _ in cols]
+    rows = []
+    for label, f in stats["filters"].items():
+        rows.append([label, f["kind"]] + [_fmt(f["summary"].get(k), spec) for k, _, spec in cols])
+    return header, rows
+
+
+def markdown_table(stats) -> str:
+    header, rows = table_rows(stats)
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * len(header)) + "|"]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def csv_table(stats) -> str:
+    cols = _columns(stats)
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(["filter", "kind"] + [k for k, _, _ in cols])
+    for label, f in stats["filters"].items():
+        w.writerow([label, f["kind"]] + [_json_num(f["summary"].get(k)) for k, _, _ in cols])
+    return buf.getvalue()
+
+
+def _json_num(v):
+    if isinstance(v, (np.floating, float)):
+        v = float(v)
+        return v if math.isfinite(v) else None
+    if isinstance(v, (np.integer,)):
+        return int(v)
+    return v
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {k: _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    return _json_num(obj)
+
+
+def stats_document(exp, res):
+    from tracklab import __version__
+
+    st = statistics(res, exp.window)
+    return {
+        "name": exp.name,
+        "tracklab_version": __version__,
+        "runs": res.runs,
+        "steps": res.steps,
+        "dt": res.dt,
+        "window": list(exp.window),
+        "wall_s": res.wall_s,
+        "compile_s": res.compile_s,
+        "experiment": exp.raw,
+        "bounds": st["bounds"],
+        "filters": {
+            label: {"kind": f["kind"], "label": label, "summary": f["summary"], "series": f["series"]}
+            for label, f in st["filters"].items()
+        },
+    }
+
+
+def write_results(exp, res, out=None, figures=True):
+    """Write DIR (default results/<name>/) atomically; return the stats document."""
+    doc = stats_document(exp, res)
+    out = Path(out) if out is not None else Path("results") / exp.name
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    try:
+        tmp.mkdir()
+        (tmp / "stats.json").write_text(json.dumps(_jsonable(doc), indent=1, allow_nan=False) + "\n")
+        (tmp / "table.md").write_text(markdown_table(doc))
+        (tmp / "table.csv").write_text(csv_table(doc))
+        if figures:
+            plot_figures(doc, tmp)
+        old = None
+        if out.exists():
+            old = out.parent / f".{out.name}.old-{os.getpid()}"
+            out.rename(old)
+        tmp.rename(out)
+        if old is not None:
+            shutil.rmtree(old)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return doc
+
+
+def plot_figures(doc, folder: Path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    dt = doc["dt"]
+    t = dt * np.arange(1, doc["steps"] + 1)
+    filters = doc["filters"]
+    bounds = doc["bounds"]
+    dim = sum(1 for a in AXES if f"rmse_{a}" in next(iter(filters.values()))["series"])
+    title = f"{doc['name']} — {doc['runs']} runs"
+
+    def arr(v):
+        return np.array([np.nan if x is None else x for x in v], float) if isinstance(v, list) else np.asarray(v, float)
+
+    # per-step RMSE per axis with the PCRLB (the paper's Fig. 2, panels A and C)
+    fig, axes = plt.subplots(dim, 1, figsize=(8, 2.8 * dim), sharex=True)
+    for a, ax in enumerate(np.atleast_1d(axes)):
+        for label, f in filters.items():
+            ax.plot(t, arr(f["series"][f"rmse_{AXES[a]}"]), lw=1.2, label=label)
+        if f"pcrlb_{AXES[a]}" in bounds:
+            ax.plot(t, arr(bounds[f"pcrlb_{AXES[a]}"]), "k--", lw=1, label="PCRLB")
+        ax.set_yscale("log")
+        ax.set_ylabel(f"RMSE {AXES[a]} (m)")
+        ax.grid(True, which="both", alpha=0.3)
+    np.atleast_1d(axes)[0].legend(fontsize=7, ncol=2)
+    np.atleast_1d(axes)[0].set_title(title)
+    np.atleast_1d(axes)[-1].set_xlabel("time (s)")
+    fig.tight_layout()
+    fig.savefig(folder / "rmse.png", dpi=110)
+    plt.close(fig)
+
+    # mean error (bias) per axis (panels B and D)
+    fig, axes = plt.subplots(dim, 1, figsize=(8, 2.8 * dim), sharex=True)
+    for a, ax in enumerate(np.atleast_1d(axes)):
+        for label, f in filters.items():
+            ax.plot(t, arr(f["series"][f"mean_err_{AXES[a]}"]), lw=1.2, label=label)
+        ax.axhline(0, color="k", lw=0.6)
+        ax.set_ylabel(f"mean error {AXES[a]} (m)")
+        ax.grid(True, alpha=0.3)
+    np.atleast_1d(axes)[0].legend(fontsize=7, ncol=2)
+    np.atleast_1d(axes)[0].set_title(title)
+    np.atleast_1d(axes)[-1].set_xlabel("time (s)")
+    fig.tight_layout()
+    fig.savefig(folder / "mean_error.png", dpi=110)
+    plt.close(fig)
+
+    # average NEES with its 95 % interval
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    for label, f in filters.items():
+        (line,) = ax.plot(t, arr(f["series"]["nees"]), lw=1.2, label=label)
+    f0 = next(iter(filters.values()))["series"]
+    ax.fill_between(t, arr(f0["nees_lo"]), arr(f0["nees_hi"]), color="0.8", label="95 % interval")
+    ax.axhline(2 * dim, color="k", lw=0.6)
+    ax.set_yscale("log")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel(f"average NEES (dof {2 * dim})")
+    ax.set_title(title)
+    ax.legend(fontsize=7, ncol=2)
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(folder / "nees.png", dpi=110)
+    plt.close(fig)

@@ -1,0 +1,98 @@
+"""Truth read from a trajectory file (real flights or a user's own track).
+
+File contract: text CSV, optional ``#`` comment lines, a header row naming the
+columns ``t,x,y,z`` (in that order), then numeric rows: t in seconds, strictly
+increasing; x, y, z in metres in a local east-north-up frame whose origin is
+the sensor. Every value finite; at least two rows.
+
+The track is resampled at the experiment's period: positions by linear
+interpolation, velocities by interpolating the central finite differences of
+the file's positions. The truth is the same in every Monte-Carlo run (only the
+measurement noise and the prior differ).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+COLUMNS = ("t", "x", "y", "z")
+
+
+class TrajectoryError(ValueError):
+    """A trajectory file that breaks the contract; the message says how."""
+
+
+def read_csv(path) -> np.ndarray:
+    path = Path(path)
+    if not path.is_file():
+        raise TrajectoryError("file does not exist")
+    try:
+        lines = [ln.strip() for ln in path.read_text().splitlines()]
+    except (OSError, UnicodeDecodeError) as e:
+        raise TrajectoryError(f"cannot be read as text ({e.__class__.__name__})") from None
+    lines = [ln for ln in lines if ln and not ln.startswith("#")]
+    if not lines:
+        raise TrajectoryError("is empty: expected a header 't,x,y,z' and numeric rows")
+    header = tuple(c.strip().lower() for c in lines[0].split(","))
+    if header != COLUMNS:
+        raise TrajectoryError(f"header is {','.join(header)!r}: expected exactly 't,x,y,z'")
+    rows = []
+    for i, ln in enumerate(lines[1:], start=2):
+        cells = ln.split(",")
+        if len(cells) != 4:
+            raise TrajectoryError(f"data row {i - 1} has {len(cells)} columns: expected 4 (t,x,y,z)")
+        try:
+            rows.append([float(c) for c in cells])
+        except ValueError:
+            raise TrajectoryError(f"data row {i - 1} is not numeric: {ln[:60]!r}") from None
+    data = np.array(rows, dtype=float).reshape(-1, 4)
+    if len(data) < 2:
+        raise TrajectoryError(f"has {len(data)} data rows: at least 2 are needed")
+    if not np.all(np.isfinite(data)):
+        bad = int(np.argmax(~np.all(np.isfinite(data), axis=1))) + 1
+        raise TrajectoryError(f"data row {bad} holds NaN or inf: every value must be finite")
+    dt = np.diff(data[:, 0])
+    if np.any(dt <= 0):
+        bad = int(np.argmax(dt <= 0)) + 2
+        raise TrajectoryError(f"time is not strictly increasing at data row {bad}")
+    return data
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    path: str
+    dt: float
+    steps: int
+    dim: int = 3
+    start: float = 0.0  # seconds after the file's first time
+
+    def table(self) -> np.ndarray:
+        return read_csv(self.path)
+
+    def duration(self) -> float:
+        d = self.table()
+        return float(d[-1, 0] - d[0, 0])
+
+    def max_steps(self) -> int:
+        return int(np.floor((self.duration() - self.start) / self.dt + 1e-9))
+
+    def linear_gaussian(self):
+        return None  # deterministic truth: no bound from a Gaussian motion model
+
+    def truth(self) -> np.ndarray:
+        d = self.table()
+        t = d[0, 0] + self.start + self.dt * np.arange(self.steps + 1)
+        pos = d[:, 1:1 + self.dim]
+        vel = np.gradient(pos, d[:, 0], axis=0)
+        out = np.empty((len(t), 2 * self.dim))
+        for a in range(self.dim):
+            out[:, 2 * a] = np.interp(t, d[:, 0], pos[:, a])
+            out[:, 2 * a + 1] = np.interp(t, d[:, 0], vel[:, a])
+        return out
+
+    def simulate(self, key):
+        return jnp.asarray(self.truth())
