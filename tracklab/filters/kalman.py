@@ -147,6 +147,8 @@ def model_ekf(model, sensor, params) -> Filter:
 
 def model_cmkf(model, sensor, params, debias="plain") -> Filter:
     """Converted-measurement KF (paper 000 §3.1; REFERENCE_MATH §4 variants)."""
+    if debias == "additive" and sensor.m != 2:
+        raise ValueError("the additive (Lerro & Bar-Shalom) conversion is 2-D only")
     convert = CONVERSIONS[debias]
     H = np.zeros((model.dim, model.n))
     H[np.arange(model.dim), np.array(model.pos_idx)] = 1.0

@@ -1,0 +1,354 @@
+"""Throughput, compile time and peak memory of the lidar experiment.
+
+    python benchmarks/bench_lidar.py            # full benchmark (~5-8 min on 2 cores), writes benchmarks/results.md
+    python benchmarks/bench_lidar.py --quick    # smoke version (fewer runs), prints only
+
+See benchmarks/README.md for what is measured and how.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import json
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+EXPERIMENT = ROOT / "experiments" / "lidar_crossing.toml"
+DEFAULT_CHUNK = 1000  # what engine.monte_carlo uses when the experiment sets no chunk
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def _load(labels=None):
+    from tracklab.config import load_experiment
+
+    exp = load_experiment(EXPERIMENT)
+    if labels is not None:
+        exp.filters = [f for f in exp.filters if f.label in labels]
+        assert [f.label for f in exp.filters] == list(labels), labels
+    return exp
+
+
+def _chunks(runs, chunk):
+    import jax.numpy as jnp
+    import numpy as np
+
+    out = []
+    for c in range(-(-runs // chunk)):
+        idx = np.arange(c * chunk, (c + 1) * chunk, dtype=np.uint32)
+        out.append((jnp.asarray(idx), jnp.asarray(idx < runs)))
+    return out
+
+
+def _pass(fn, params_list, key, chunks, labels, steps, dim):
+    """One pass over all chunks, as engine.monte_carlo does it (device call,
+    transfer to host, host-side accumulation). Returns per-chunk seconds."""
+    import jax
+    import numpy as np
+
+    from tracklab.engine import Sums
+
+    acc = {lab: Sums() for lab in labels}
+    info = np.zeros((steps, dim, dim))
+    times = []
+    for idx, live in chunks:
+        t0 = time.perf_counter()
+        out = jax.device_get(jax.block_until_ready(fn(params_list, key, idx, live)))
+        info += out.pop("_info")
+        out.pop("_live")
+        for lab, s in out.items():
+            acc[lab].add(s)
+        times.append(time.perf_counter() - t0)
+    return times, acc
+
+
+def bench_throughput(labels, runs, chunk, seed=0, repeat=1):
+    """Compile time and steady-state throughput for the given filters.
+
+    The chunk function is built once; its first call (compile + one chunk) is
+    timed, then a full pass over all chunks is timed with the compiled function.
+    compile_s = first call - median steady per-chunk time.
+    """
+    import jax
+
+    from tracklab.engine import make_chunk_fn
+
+    exp = _load(labels)
+    specs = exp.filter_specs()
+    chunk = min(chunk, runs)
+    fn = make_chunk_fn(exp.scenario, exp.sensor, specs, exp.prior_covariance(), float(exp.scenario.dt))
+    params_list = [s.filter.params for s in specs]
+    key = jax.random.key(seed)
+    chunks = _chunks(runs, chunk)
+    labs = [s.label for s in specs]
+
+    t0 = time.perf_counter()
+    _pass(fn, params_list, key, chunks[:1], labs, exp.steps, exp.dim)
+    first = time.perf_counter() - t0
+
+    wall = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        times_i, acc = _pass(fn, params_list, key, chunks, labs, exp.steps, exp.dim)
+        wall_i = time.perf_counter() - t0
+        if wall_i < wall:
+            wall, times = wall_i, times_i
+    per_chunk = statistics.median(times)
+    diverged = {lab: float(a.data["diverged"]) for lab, a in acc.items()}
+    return {
+        "labels": labs,
+        "runs": runs,
+        "chunk": chunk,
+        "repeat": repeat,
+        "n_chunks": len(chunks),
+        "first_call_s": first,
+        "steady_chunk_s": per_chunk,
+        "compile_s": first - per_chunk,
+        "wall_s": wall,
+        "min_chunk_s": min(times),
+        "max_chunk_s": max(times),
+        "throughput": runs * exp.steps / wall,
+        "diverged": diverged,
+    }
+
+
+# ----------------------------------------------------------------------------- memory child
+
+
+def _vmhwm_kib():
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1])
+    return -1
+
+
+def child_memory(runs, chunk):
+    """Runs in a fresh process: the whole experiment through the public API."""
+    t0 = time.perf_counter()
+    import jax
+
+    import tracklab  # noqa: F401
+
+    exp = _load()
+    jax.block_until_ready(jax.numpy.zeros(1))  # backend initialised
+    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    import_s = time.perf_counter() - t0
+    after_first = []
+
+    def progress(done, total):
+        if not after_first:  # peak after compile + first chunk
+            after_first.append(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+
+    res = exp.monte_carlo(runs=runs, seed=0, chunk=chunk, progress=progress)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    print(json.dumps({
+        "runs": runs,
+        "chunk": chunk,
+        "baseline_kib": base,
+        "after_first_chunk_kib": after_first[0],
+        "peak_kib": peak,
+        "vmhwm_kib": _vmhwm_kib(),  # cross-check: the same high-water mark, per address space
+        "import_s": import_s,
+        "wall_s": res.wall_s,  # includes the first chunk's compile
+        "compile_s": res.compile_s,  # first chunk's time incl. compile
+        "diverged": {lab: float(res.sums[lab]["diverged"]) for lab in res.labels},
+        "count_last": {lab: float(res.sums[lab]["count"][-1]) for lab in res.labels},
+    }))
+
+
+def bench_memory(runs, chunk):
+    t0 = time.perf_counter()
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child-memory", str(runs), str(chunk)]
+    p = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+    total = time.perf_counter() - t0
+    if p.returncode != 0:
+        raise RuntimeError(f"memory child failed:\n{p.stderr}")
+    out = json.loads(p.stdout.strip().splitlines()[-1])
+    out["process_s"] = total
+    return out
+
+
+# ----------------------------------------------------------------------------- report
+
+
+def machine_info():
+    import jax
+
+    model = "?"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {
+        "date": _dt.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z"),
+        "nproc": os.cpu_count(),
+        "cpu": model,
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "jaxlib": getattr(__import__("jaxlib"), "__version__", "?"),
+        "backend": f"{jax.default_backend()} ({len(jax.devices())} device(s))",
+        "loadavg": " ".join(f"{x:.2f}" for x in os.getloadavg()),
+    }
+
+
+def fmt_rate(x):
+    return f"{x / 1e6:.2f} M" if x >= 1e6 else f"{x / 1e3:.0f} k"
+
+
+def _mib(kib):
+    return kib / 1024
+
+
+def render(info, cmd, cfg, single, alls, sim, sweep, mems, total_s, load_end):
+    L = []
+    L.append("# Lidar benchmark (`experiments/lidar_crossing.toml`)")
+    L.append("")
+    L.append(f"- Date: {info['date']}")
+    L.append(f"- Machine: nproc = {info['nproc']}, CPU = {info['cpu']} (model name from /proc/cpuinfo)")
+    L.append(f"- Load average (1/5/15 min) at start: {info['loadavg']}; at end: {load_end}")
+    L.append(f"- Python {info['python']}, jax {info['jax']}, jaxlib {info['jaxlib']}, backend {info['backend']}, float64")
+    L.append(f"- Command: `{cmd}`")
+    L.append(f"- Steps per run: {cfg['steps']}; chunk size {cfg['chunk']} unless stated "
+             "(engine.monte_carlo's default; the experiment file sets none)")
+    L.append(f"- Total benchmark time: {total_s:.0f} s")
+    L.append("")
+    L.append(f"## Throughput and compile time ({cfg['runs']} runs, chunk {cfg['chunk']})")
+    L.append("")
+    L.append("Throughput = runs x steps / wall time of one full pass over all chunks with the already compiled "
+             "function (simulate + filter + statistics + transfer + host-side accumulation, as engine.monte_carlo "
+             f"does it); the fastest of {cfg['repeat']} such pass(es) is kept. Compile = first call (one chunk, compile + run) - median steady per-chunk time.")
+    L.append("")
+    L.append("| Filters | Throughput (runs·steps/s) | Wall (s) | Per chunk, median [min–max] (s) | Compile (s) | Wall / all-5 wall |")
+    L.append("|---|---:|---:|---:|---:|---:|")
+    rows = list(single) + [alls] + [sim]
+    for r in rows:
+        name = ", ".join(r["labels"]) if len(r["labels"]) < 5 else "**all 5**"
+        if not r["labels"]:
+            name = "(simulation only, no filter)"
+        share = f"{100 * r['wall_s'] / alls['wall_s']:.0f} %"
+        L.append(f"| {name} | {fmt_rate(r['throughput'])} | {r['wall_s']:.2f} | {r['steady_chunk_s']:.3f} "
+                 f"[{r['min_chunk_s']:.3f}–{r['max_chunk_s']:.3f}] | {r['compile_s']:.2f} | {share} |")
+    ssum = sum(r["wall_s"] for r in single)
+    L.append("")
+    L.append(f"Sum of the five single-filter walls: {ssum:.2f} s (each includes the simulation, which alone "
+             f"takes {sim['wall_s']:.2f} s); all 5 in one function: {alls['wall_s']:.2f} s.")
+    L.append("")
+    L.append(f"## Chunk size (all 5 filters, {cfg['runs']} runs)")
+    L.append("")
+    L.append("The last chunk is padded to full size (masked runs), so a chunk that does not divide the run "
+             "count does some wasted work.")
+    L.append("")
+    L.append("| Chunk | Chunks | Throughput (runs·steps/s) | Wall (s) | Per chunk, median (s) | Compile (s) |")
+    L.append("|---:|---:|---:|---:|---:|---:|")
+    for r in sweep:
+        L.append(f"| {r['chunk']} | {r['n_chunks']} | {fmt_rate(r['throughput'])} | {r['wall_s']:.2f} | "
+                 f"{r['steady_chunk_s']:.3f} | {r['compile_s']:.2f} |")
+    L.append("")
+    L.append("## Peak resident memory (all 5 filters, fresh subprocess, `exp.monte_carlo`)")
+    L.append("")
+    L.append("`resource.getrusage(RUSAGE_SELF).ru_maxrss` in the child (KiB on Linux, shown in MiB): baseline after "
+             "importing jax + tracklab, loading the experiment and initialising the backend; again after the first "
+             "chunk (compile + run, via the progress callback); and at the end. VmHWM from /proc/self/status is the "
+             "same high-water mark, as a cross-check. The child is started before the parent imports jax, because "
+             "Linux carries the parent's peak RSS into a child's ru_maxrss across fork/exec (a child started from a "
+             "parent that had run the throughput benchmarks reported a 916 MiB \"baseline\"). Wall = "
+             "`MonteCarloResult.wall_s` (includes compile); compile+1st chunk = `MonteCarloResult.compile_s`.")
+    L.append("")
+    L.append("| Runs | Chunk | Baseline (MiB) | After 1st chunk (MiB) | Peak at end (MiB) | Increment (MiB) | VmHWM (MiB) | Wall (s) | Compile+1st chunk (s) | Throughput incl. compile (runs·steps/s) |")
+    L.append("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for m in mems:
+        b, f, p = _mib(m["baseline_kib"]), _mib(m["after_first_chunk_kib"]), _mib(m["peak_kib"])
+        thr = m["runs"] * cfg["steps"] / m["wall_s"]
+        L.append(f"| {m['runs']} | {m['chunk']} | {b:.0f} | {f:.0f} | {p:.0f} | {p - b:.0f} | {_mib(m['vmhwm_kib']):.0f} | "
+                 f"{m['wall_s']:.1f} | {m['compile_s']:.1f} | {fmt_rate(thr)} |")
+    L.append("")
+    div = {k: v for r in rows + sweep for k, v in r["diverged"].items() if v}
+    div.update({k: v for m in mems for k, v in m["diverged"].items() if v})
+    L.append(f"Diverged runs: {div}" if div else "No diverged runs in any filter or configuration.")
+    L.append("")
+    return "\n".join(L)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="smoke version: fewer runs, does not write results.md")
+    ap.add_argument("--out", type=Path, default=None, help="Markdown output (default benchmarks/results.md; none with --quick)")
+    ap.add_argument("--repeat", type=int, default=None,
+                    help="timed passes per throughput measurement, fastest kept (default 2; 1 with --quick)")
+    ap.add_argument("--child-memory", nargs=2, type=int, metavar=("RUNS", "CHUNK"), help=argparse.SUPPRESS)
+    a = ap.parse_args()
+
+    if a.child_memory:
+        child_memory(*a.child_memory)
+        return
+
+    t_all = time.perf_counter()
+    load_start = os.getloadavg()
+    cmd = "python benchmarks/bench_lidar.py" + (" --quick" if a.quick else "")
+    runs = 2000 if a.quick else 10_000
+    mem_runs = 3000 if a.quick else 100_000
+    chunk = DEFAULT_CHUNK
+    repeat = a.repeat or (1 if a.quick else 2)
+    if a.repeat:
+        cmd += f" --repeat {a.repeat}"
+
+    # Memory first, while this process has not imported jax (see render()).
+    print(f"memory: {mem_runs} runs in a subprocess ...", flush=True)
+    mems = [bench_memory(mem_runs, chunk)]
+    m = mems[0]
+    print(f"  baseline {_mib(m['baseline_kib']):.0f} MiB, after 1st chunk {_mib(m['after_first_chunk_kib']):.0f} MiB, "
+          f"peak {_mib(m['peak_kib']):.0f} MiB, wall {m['wall_s']:.1f} s", flush=True)
+
+    import tracklab  # noqa: F401  (float64)
+
+    info = machine_info()
+    info["loadavg"] = " ".join(f"{x:.2f}" for x in load_start)
+    exp = _load()
+    labels = [f.label for f in exp.filters]
+    cfg = {"runs": runs, "chunk": chunk, "steps": exp.steps, "repeat": repeat}
+    print(f"# {info}", flush=True)
+
+    def log(r):
+        print(f"  {r['labels'] or ['(sim only)']} runs={r['runs']} chunk={r['chunk']}: "
+              f"{fmt_rate(r['throughput'])} runs*steps/s, wall {r['wall_s']:.2f} s, compile {r['compile_s']:.2f} s", flush=True)
+
+    single = []
+    for lab in labels:
+        single.append(bench_throughput([lab], runs, chunk, repeat=repeat))
+        log(single[-1])
+    sim = bench_throughput([], runs, chunk, repeat=repeat)
+    log(sim)
+    alls = bench_throughput(labels, runs, chunk, repeat=repeat)
+    log(alls)
+
+    sweep = []
+    for c in (250, 1000, 4000):
+        r = alls if c == chunk else bench_throughput(labels, runs, c, repeat=repeat)
+        if c != chunk:
+            log(r)
+        sweep.append(r)
+
+    load_end = " ".join(f"{x:.2f}" for x in os.getloadavg())
+    md = render(info, cmd, cfg, single, alls, sim, sweep, mems, time.perf_counter() - t_all, load_end)
+    print()
+    print(md)
+    out = a.out if a.out is not None else (None if a.quick else ROOT / "benchmarks" / "results.md")
+    if out is not None:
+        out.write_text(md)
+        print(f"written {out}")
+
+
+if __name__ == "__main__":
+    main()
