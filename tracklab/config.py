@@ -25,7 +25,8 @@ from tracklab.sensors import SENSOR_KINDS, Sensor
 MAX_RUNS = 100_000_000
 MAX_STEPS = 1_000_000
 MAX_RUN_STEPS = 10**12
-NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,99}$")
+NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,99}")
+MAX_MAGNITUDE = 1e15  # largest accepted magnitude: squares stay finite in float64
 
 SENSOR_SIGMAS = {
     "polar": ("sigma_r", "sigma_angle"),
@@ -65,8 +66,8 @@ class _Section:
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             raise self._err(key, v, "must be a number")
         v = float(v)
-        if not math.isfinite(v):
-            raise self._err(key, v, "must be a finite number")
+        if not math.isfinite(v) or abs(v) > MAX_MAGNITUDE:
+            raise self._err(key, v, f"must be a finite number of magnitude <= {MAX_MAGNITUDE:g}")
         if positive and v <= 0:
             raise self._err(key, v, "must be a number > 0")
         if nonneg and v < 0:
@@ -176,8 +177,9 @@ class Experiment:
 
     def run(self, runs=None, seed=None, out=None, progress=None, figures=True):
         """Run and write the results folder; returns the statistics dictionary."""
-        from tracklab.report import write_results
+        from tracklab.report import results_folder, write_results
 
+        out = results_folder(self, out)
         res = self.monte_carlo(runs=runs, seed=seed, progress=progress)
         return write_results(self, res, out, figures=figures)
 
@@ -206,11 +208,13 @@ def load_experiment(path) -> Experiment:
 
     ex = _Section(f, "experiment", raw["experiment"])
     name = ex.string("name", required=True)
-    if not NAME_RE.match(name):
+    if not NAME_RE.fullmatch(name):
         raise ConfigError(f, "experiment.name", name, "must be 1-100 characters of letters, digits, '_', '.', '-'")
     runs = ex.integer("runs", required=True, lo=1, hi=MAX_RUNS)
     seed = ex.integer("seed", 0, lo=0, hi=2**32 - 1)
     dt = ex.number("dt", required=True, positive=True)
+    if not 1e-6 <= dt <= 1e6:
+        raise ConfigError(f, "experiment.dt", dt, "must be a period in [1e-06, 1e+06] s")
     steps = ex.integer("steps", required=True, lo=1, hi=MAX_STEPS)
     if runs * steps > MAX_RUN_STEPS:
         raise ConfigError(f, "experiment.runs", runs, f"runs x steps must be <= {MAX_RUN_STEPS:.0e}")
@@ -220,9 +224,9 @@ def load_experiment(path) -> Experiment:
 
     sn = _Section(f, "sensor", raw["sensor"])
     skind = sn.string("kind", required=True, choices=tuple(SENSOR_KINDS))
-    p_detect = sn.number("p_detect", 1.0, lo=0.0, hi=1.0)
-    if p_detect <= 0:
-        raise ConfigError(f, "sensor.p_detect", p_detect, "must be in (0, 1]")
+    p_detect = sn.number("p_detect", 1.0)
+    if not 0.0 < p_detect <= 1.0:
+        raise ConfigError(f, "sensor.p_detect", p_detect, "must be a probability in (0, 1]")
 
     sc = _Section(f, "scenario", raw["scenario"])
     kind = sc.string("kind", required=True, choices=("crossing", "trajectory"))
@@ -269,8 +273,8 @@ def load_experiment(path) -> Experiment:
             raise ConfigError(f, "sensor.sigma", s, f"must have {dim} values (one per axis) or be a single number")
         sig = []
         for v in vals:
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-                raise ConfigError(f, "sensor.sigma", s, "each value must be a finite number > 0")
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= MAX_MAGNITUDE:
+                raise ConfigError(f, "sensor.sigma", s, f"each value must be a number in (0, {MAX_MAGNITUDE:g}]")
             sig.append(float(v))
         sigma = tuple(sig)
     else:
@@ -324,8 +328,8 @@ def load_experiment(path) -> Experiment:
                 r = tuple(v**2 for v in sigma)
             else:
                 vals = s if isinstance(s, list) else [s] * dim
-                if len(vals) != dim or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0 for v in vals):
-                    raise ConfigError(f, f"filter[{i}].sigma", s, f"must be a number > 0 or {dim} of them")
+                if len(vals) != dim or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= MAX_MAGNITUDE for v in vals):
+                    raise ConfigError(f, f"filter[{i}].sigma", s, f"must be a number in (0, {MAX_MAGNITUDE:g}] or {dim} of them")
                 r = tuple(float(v) ** 2 for v in vals)
         else:
             r = tuple(

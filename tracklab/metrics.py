@@ -40,6 +40,12 @@ def _div(a, b):
         return np.where(b > 0, a / np.where(b > 0, b, 1.0), np.nan)
 
 
+def _inside(v, lo, hi):
+    """1 where the average lies inside its interval, 0 outside, NaN where undefined."""
+    with np.errstate(invalid="ignore"):
+        return np.where(np.isfinite(v), ((v >= lo) & (v <= hi)).astype(float), np.nan)
+
+
 def per_step(sums, dim, meas_dim, runs):
     """Per-step series for one filter from its sums."""
     c = sums["count"]
@@ -59,8 +65,10 @@ def per_step(sums, dim, meas_dim, runs):
     s["max_err_vel"] = np.where(c > 0, sums["max_err_vel"], np.nan)
     s["nees"] = _div(sums["sum_nees"], c)
     s["nees_lo"], s["nees_hi"] = average_chi2_interval(2 * dim, c)
+    s["nees_in_bounds"] = _inside(s["nees"], s["nees_lo"], s["nees_hi"])
     s["nis"] = _div(sums["sum_nis"], sums["count_nis"])
     s["nis_lo"], s["nis_hi"] = average_chi2_interval(meas_dim, sums["count_nis"])
+    s["nis_in_bounds"] = _inside(s["nis"], s["nis_lo"], s["nis_hi"])
     s["healthy_runs"] = c
     return s
 
@@ -70,10 +78,10 @@ def summarise(series, window, pcrlb_pos=None, diverged=0.0, runs=0):
     a, b = window
     w = slice(a - 1, b)
 
-    def inside(v, lo, hi):
-        v, lo, hi = v[w], lo[w], hi[w]
-        ok = np.isfinite(v)
-        return float(np.mean((v[ok] >= lo[ok]) & (v[ok] <= hi[ok]))) if ok.any() else float("nan")
+    def fraction(flags):
+        flags = flags[w]
+        ok = np.isfinite(flags)
+        return float(np.mean(flags[ok])) if ok.any() else float("nan")
 
     out = {
         "rmse_pos": float(np.sqrt(np.mean(series["mse_pos"][w]))),
@@ -86,9 +94,9 @@ def summarise(series, window, pcrlb_pos=None, diverged=0.0, runs=0):
     out["max_err_pos"] = float(np.max(series["max_err_pos"][w]))
     out["max_err_vel"] = float(np.max(series["max_err_vel"][w]))
     out["nees"] = float(np.mean(series["nees"][w]))
-    out["nees_in_bounds"] = inside(series["nees"], series["nees_lo"], series["nees_hi"])
+    out["nees_in_bounds"] = fraction(series["nees_in_bounds"])
     out["nis"] = float(np.nanmean(series["nis"][w])) if np.isfinite(series["nis"][w]).any() else float("nan")
-    out["nis_in_bounds"] = inside(series["nis"], series["nis_lo"], series["nis_hi"])
+    out["nis_in_bounds"] = fraction(series["nis_in_bounds"])
     if pcrlb_pos is not None:
         out["pcrlb_pos"] = float(np.sqrt(np.mean(np.square(pcrlb_pos[w]))))
         out["rmse_pos_over_pcrlb"] = out["rmse_pos"] / out["pcrlb_pos"]

@@ -117,10 +117,20 @@ def stats_document(exp, res):
     }
 
 
+def results_folder(exp, out=None) -> Path:
+    """The destination folder; refused up front if it exists and is not a folder."""
+    from tracklab.errors import ConfigError
+
+    out = Path(out) if out is not None else Path("results") / exp.name
+    if out.exists() and not out.is_dir():
+        raise ConfigError(exp.path, "--out", str(out), "exists and is not a folder")
+    return out
+
+
 def write_results(exp, res, out=None, figures=True):
     """Write DIR (default results/<name>/) atomically; return the stats document."""
     doc = stats_document(exp, res)
-    out = Path(out) if out is not None else Path("results") / exp.name
+    out = results_folder(exp, out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
     if tmp.exists():

@@ -29,9 +29,9 @@ class TrajectoryError(ValueError):
 def read_csv(path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
-        raise TrajectoryError("file does not exist")
+        raise TrajectoryError("does not exist or is not a file")
     try:
-        lines = [ln.strip() for ln in path.read_text().splitlines()]
+        lines = [ln.strip() for ln in path.read_text(encoding="utf-8-sig").splitlines()]
     except (OSError, UnicodeDecodeError) as e:
         raise TrajectoryError(f"cannot be read as text ({e.__class__.__name__})") from None
     lines = [ln for ln in lines if ln and not ln.startswith("#")]
