@@ -131,11 +131,8 @@ def test_chunking_does_not_change_statistics(tmp_path):
     ref = _flat(exp.monte_carlo(chunk=301))
     for chunk in (64, 100):
         got = _flat(exp.monte_carlo(chunk=chunk))
-        for k in ref:
-            if k.split("/")[1].startswith("max_"):
-                np.testing.assert_array_equal(got[k], ref[k], err_msg=k)
-            else:
-                np.testing.assert_allclose(got[k], ref[k], rtol=1e-12, atol=1e-9, err_msg=k)
+        for k in ref:  # equal up to the order of floating-point sums (and FMA contraction)
+            np.testing.assert_allclose(got[k], ref[k], rtol=1e-12, atol=1e-9, err_msg=k)
 
 
 DEVICE_SCRIPT = """

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab.filters.core import Filter, Meas, Prior
+from tracklab.linalg import mahalanobis2
 from tracklab.models import Kinematic
 from tracklab.sensors import Sensor
 
@@ -102,12 +103,8 @@ def _filter_chunk(spec: FilterSpec, params, truth, z, prior_cv, P0_cv, live, dt)
         state, out = step(params, state, Meas(z_k, jnp.full((B,), t_k), ones))
         e = out.x[:, pv] - truth_k  # (B, 2d) CV layout
         Pe = out.P[:, pv[:, None], pv[None, :]]
-        L = jnp.linalg.cholesky(Pe)
-        y = jax.scipy.linalg.solve_triangular(L, e[..., None], lower=True)[..., 0]
-        nees = jnp.sum(y * y, axis=-1)
-        Ls = jnp.linalg.cholesky(out.S)
-        u = jax.scipy.linalg.solve_triangular(Ls, out.nu[..., None], lower=True)[..., 0]
-        nis = jnp.where(out.valid, jnp.sum(u * u, axis=-1), 0.0)
+        nees = jax.vmap(mahalanobis2)(Pe, e)  # NaN when P is not positive definite
+        nis = jnp.where(out.valid, jax.vmap(mahalanobis2)(out.S, out.nu), 0.0)
         bad = ~(jnp.isfinite(nees) & jnp.all(jnp.isfinite(out.x), axis=-1))
         bad = bad | (out.valid & ~jnp.isfinite(nis))
         return state, (e, nees, nis, out.valid, bad)

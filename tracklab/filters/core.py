@@ -18,6 +18,8 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from tracklab.linalg import mm, spd_inverse
+
 
 class Prior(NamedTuple):
     """Gaussian prior one sample period before the first measurement."""
@@ -71,12 +73,12 @@ def symmetrise(P):
 
 def kalman_update(x, P, nu, H, R):
     """Kalman measurement update in Joseph form; returns (x, P, S)."""
-    S = H @ P @ H.T + R
-    PHt = P @ H.T
-    K = jnp.linalg.solve(S, PHt.T).T  # K = P Hᵀ S⁻¹ (S symmetric)
-    x = x + K @ nu
-    IKH = jnp.eye(P.shape[-1], dtype=P.dtype) - K @ H
-    P = IKH @ P @ IKH.T + K @ R @ K.T
+    PHt = mm(P, H.T)
+    S = mm(H, PHt) + R
+    K = mm(PHt, spd_inverse(S))  # K = P Hᵀ S⁻¹
+    x = x + mm(K, nu)
+    IKH = jnp.eye(P.shape[-1], dtype=P.dtype) - mm(K, H)
+    P = mm(mm(IKH, P), IKH.T) + mm(mm(K, R), K.T)
     return x, symmetrise(P), S
 
 

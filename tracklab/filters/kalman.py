@@ -27,6 +27,7 @@ from tracklab.filters.core import (
     symmetrise,
     wrap_components,
 )
+from tracklab.linalg import mm
 from tracklab.sensors import CONVERSIONS
 
 
@@ -55,7 +56,7 @@ def gaussian_filter(params, predict, update, report=None, init=None) -> Filter:
 
 
 def _linear_predict(F, Q, g):
-    return Gaussian(F @ g.x, symmetrise(F @ g.P @ F.T + Q))
+    return Gaussian(mm(F, g.x), symmetrise(mm(mm(F, g.P), F.T) + Q))
 
 
 # --------------------------------------------------------------------------- public
@@ -69,7 +70,7 @@ def kf(F, H, Q, R) -> Filter:
         return _linear_predict(p["F"], p["Q"], g)
 
     def update(p, g, z):
-        nu = z - p["H"] @ g.x
+        nu = z - mm(p["H"], g.x)
         x, P, S = kalman_update(g.x, g.P, nu, p["H"], p["R"])
         return Gaussian(x, P), nu, S
 
@@ -86,7 +87,7 @@ def ekf(f, h, Q, R, *, angle_mask=None) -> Filter:
 
     def predict(p, g):
         F = jax.jacfwd(f)(g.x)
-        return Gaussian(f(g.x), symmetrise(F @ g.P @ F.T + p["Q"]))
+        return Gaussian(f(g.x), symmetrise(mm(mm(F, g.P), F.T) + p["Q"]))
 
     def update(p, g, z):
         H = jax.jacfwd(h)(g.x)
@@ -125,7 +126,7 @@ def model_kf(model, sensor, params) -> Filter:
     H = jnp.asarray(H)
 
     def update(p, g, z):
-        nu = z - H @ g.x
+        nu = z - mm(H, g.x)
         x, P, S = kalman_update(g.x, g.P, nu, H, jnp.diag(p["r"]))
         return Gaussian(x, P), nu, S
 
@@ -156,7 +157,7 @@ def model_cmkf(model, sensor, params, debias="plain") -> Filter:
 
     def update(p, g, z):
         zc, Rc = convert(z, jnp.sqrt(p["r"]))
-        nu = zc - H @ g.x
+        nu = zc - mm(H, g.x)
         x, P, S = kalman_update(g.x, g.P, nu, H, Rc)
         return Gaussian(x, P), nu, S
 

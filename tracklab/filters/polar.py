@@ -15,6 +15,7 @@ import jax.numpy as jnp
 
 from tracklab.filters.core import Gaussian, Prior, kalman_update, symmetrise, wrap_angle
 from tracklab.filters.kalman import gaussian_filter
+from tracklab.linalg import mm
 
 
 def polar_to_cartesian(s):
@@ -47,17 +48,17 @@ def model_polar_kf(dt, sensor, params):
         Gr = jnp.array([[T**2 / 2 * c, T**2 / 2 * s], [T * c, T * s]])  # eq. (15)
         Gb = jnp.array([[-(T**2) * s / (2 * r), T**2 * c / (2 * r)], [-T * s / r, T * c / r]])  # eq. (16)
         Q = jnp.zeros((4, 4))
-        Q = Q.at[:2, :2].set((Gr * q) @ Gr.T).at[2:, 2:].set((Gb * q) @ Gb.T)
-        return Gaussian(F @ g.x, symmetrise(F @ g.P @ F.T + Q))
+        Q = Q.at[:2, :2].set(mm(Gr * q, Gr.T)).at[2:, 2:].set(mm(Gb * q, Gb.T))
+        return Gaussian(mm(F, g.x), symmetrise(mm(mm(F, g.P), F.T) + Q))
 
     def update(p, g, z):
-        nu = z - H @ g.x
+        nu = z - mm(H, g.x)
         nu = nu.at[1].set(wrap_angle(nu[1]))
         x, P, S = kalman_update(g.x, g.P, nu, H, jnp.diag(p["r"]))
         return Gaussian(x, P), nu, S
 
     def report(g):
         J = jax.jacfwd(polar_to_cartesian)(g.x)
-        return polar_to_cartesian(g.x), symmetrise(J @ g.P @ J.T)
+        return polar_to_cartesian(g.x), symmetrise(mm(mm(J, g.P), J.T))
 
     return gaussian_filter(params, predict, update, report=report, init=init)

@@ -18,6 +18,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from tracklab.linalg import mm
+
 
 def _plain_position(z):
     if z.shape[-1] == 2:
@@ -30,7 +32,7 @@ def _plain_position(z):
 def plain(z, sigma):
     """Paper 000 eq. (8) with R_T = J R Jᵀ at the measurement (eq. 12 in 2-D)."""
     J = jax.jacfwd(_plain_position)(z)
-    return _plain_position(z), (J * jnp.square(sigma)) @ J.T
+    return _plain_position(z), mm(J * jnp.square(sigma), J.T)
 
 
 def additive(z, sigma):

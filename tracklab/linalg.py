@@ -1,0 +1,66 @@
+"""Small dense linear algebra written as elementwise arithmetic.
+
+Filters work on matrices of a few rows (n ≤ 9, m ≤ 3) batched over thousands of
+Monte-Carlo runs. XLA on CPU runs batched LAPACK calls (cholesky, solve) and
+batched dot_general on such tiny matrices slowly, while elementwise arithmetic
+over the run axis vectorises well. These routines unroll the loops over rows at
+trace time (the sizes are static), so under ``vmap`` every operation is an
+elementwise operation on run-length vectors.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+
+def mm(A, B):
+    """Matrix product of small matrices as a broadcast multiply and a sum."""
+    if A.ndim == 1:
+        return jnp.sum(A[:, None] * B, axis=0)
+    if B.ndim == 1:
+        return jnp.sum(A * B[None, :], axis=1)
+    return jnp.sum(A[:, :, None] * B[None, :, :], axis=1)
+
+
+def cholesky(A):
+    """Lower Cholesky factor; NaN wherever A is not (numerically) positive definite."""
+    n = A.shape[-1]
+    L = [[None] * n for _ in range(n)]
+    for j in range(n):
+        s = A[j, j] - sum((L[j][k] ** 2 for k in range(j)), jnp.zeros_like(A[j, j]))
+        d = jnp.sqrt(jnp.where(s > 0, s, jnp.nan))
+        L[j][j] = d
+        for i in range(j + 1, n):
+            t = A[i, j] - sum((L[i][k] * L[j][k] for k in range(j)), jnp.zeros_like(A[i, j]))
+            L[i][j] = t / d
+    zero = jnp.zeros_like(A[0, 0])
+    return jnp.stack([jnp.stack([L[i][j] if j <= i else zero for j in range(n)]) for i in range(n)])
+
+
+def _forward(L, v):
+    n = L.shape[-1]
+    y = []
+    for i in range(n):
+        t = v[i] - sum((L[i, k] * y[k] for k in range(i)), jnp.zeros_like(v[i]))
+        y.append(t / L[i, i])
+    return jnp.stack(y)
+
+
+def mahalanobis2(A, v):
+    """vᵀ A⁻¹ v for symmetric positive-definite A (NaN if A is not)."""
+    y = _forward(cholesky(A), v)
+    return jnp.sum(y * y)
+
+
+def spd_inverse(A):
+    """Inverse of a small symmetric positive-definite matrix via its Cholesky factor."""
+    n = A.shape[-1]
+    if n == 1:
+        return 1.0 / A
+    if n == 2:
+        det = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
+        return jnp.stack([jnp.stack([A[1, 1], -A[0, 1]]), jnp.stack([-A[1, 0], A[0, 0]])]) / det
+    L = cholesky(A)
+    eye = jnp.eye(n, dtype=A.dtype)
+    Linv = jnp.stack([_forward(L, eye[:, j]) for j in range(n)], axis=1)  # columns of L⁻¹
+    return mm(Linv.T, Linv)
