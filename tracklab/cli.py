@@ -91,8 +91,28 @@ def build_parser():
     return p
 
 
+def _compilation_cache():
+    """Keep compiled programs between invocations (JAX's persistent cache).
+
+    TRACKLAB_CACHE_DIR chooses the folder; an empty value turns the cache off.
+    JAX's own JAX_COMPILATION_CACHE_DIR, when set, takes precedence.
+    """
+    import os
+
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        return
+    folder = os.environ.get("TRACKLAB_CACHE_DIR", str(Path.home() / ".cache" / "tracklab" / "jax"))
+    if not folder:
+        return
+    import jax
+
+    jax.config.update("jax_compilation_cache_dir", folder)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    _compilation_cache()
     try:
         return args.func(args)
     except ConfigError as e:

@@ -194,6 +194,7 @@ def plot_figures(doc, folder: Path):
         for label, f in filters.items():
             ax.plot(t, arr(f["series"][f"mean_err_{AXES[a]}"]), lw=1.2, label=label)
         ax.axhline(0, color="k", lw=0.6)
+        ax.set_yscale("symlog", linthresh=1.0)  # small biases stay visible beside large ones
         ax.set_ylabel(f"mean error {AXES[a]} (m)")
         ax.grid(True, alpha=0.3)
     np.atleast_1d(axes)[0].legend(fontsize=7, ncol=2)
