@@ -17,10 +17,11 @@ from typing import Any
 import numpy as np
 
 from tracklab.errors import ConfigError
-from tracklab.filters import FILTER_KINDS, build, noise_params
+from tracklab.filters import FILTER_KINDS, build
+from tracklab.filters.fusion import LaserIrFusion, Select
 from tracklab.models import MODELS, cv
-from tracklab.scenarios import Crossing, Trajectory, TrajectoryError, read_csv
-from tracklab.sensors import SENSOR_KINDS, Sensor
+from tracklab.scenarios import ConstantVelocity, Crossing, Trajectory, TrajectoryError, read_csv
+from tracklab.sensors import SENSOR_KINDS, Sensor, SensorSuite
 
 MAX_RUNS = 100_000_000
 MAX_STEPS = 1_000_000
@@ -31,8 +32,10 @@ MAX_MAGNITUDE = 1e15  # largest accepted magnitude: squares stay finite in float
 SENSOR_SIGMAS = {
     "polar": ("sigma_r", "sigma_angle"),
     "spherical": ("sigma_r", "sigma_az", "sigma_el"),
+    "angles": ("sigma_az", "sigma_el"),
     "cartesian": ("sigma",),
 }
+SENSOR_DIM = {"polar": 2, "spherical": 3, "angles": 3}
 
 
 class _Section:
@@ -116,9 +119,10 @@ class FilterConfig:
     label: str
     kind: str
     model: str
-    q: float  # process-noise variance of the filter's model
-    r: tuple[float, ...]  # measurement-noise variances the filter assumes
+    params: dict  # name -> float or tuple (the filter's parameter pytree, as numbers)
     options: dict = field(default_factory=dict)
+    sensors: tuple[str, ...] = ()  # which sensors the filter sees (all when empty)
+    fusion: str | None = None  # "interpolate" | "none": laser + infrared fusion view
 
 
 @dataclass
@@ -133,7 +137,7 @@ class Experiment:
     steps: int
     chunk: int | None
     scenario: Any
-    sensor: Sensor
+    sensor: SensorSuite
     filters: list[FilterConfig]
     prior: dict[str, float]
     window: tuple[int, int]
@@ -147,16 +151,23 @@ class Experiment:
         d = self.dim
         return np.diag([self.prior["pos_sigma"] ** 2, self.prior["vel_sigma"] ** 2] * d)
 
+    def view(self, fc: FilterConfig):
+        """(view function or None, measurement model) of what a filter sees."""
+        return _view(self.sensor, fc.sensors, fc.fusion)
+
     def filter_specs(self):
+        import jax.numpy as jnp
+
         from tracklab.engine import FilterSpec
 
         specs = []
         for fc in self.filters:
             model = MODELS[fc.model](self.dim, self.dt)
-            params = noise_params(fc.q, np.array(fc.r))
-            flt = build(fc.kind, model, self.sensor, params, fc.options)
+            view, meas_model = self.view(fc)
+            params = {k: jnp.asarray(v, dtype=float) for k, v in fc.params.items()}
+            flt = build(fc.kind, model, meas_model, params, fc.options)
             report_model = cv(self.dim, self.dt) if fc.kind == "polar_kf" else model
-            specs.append(FilterSpec(fc.label, fc.kind, flt, report_model, self.prior["acc_sigma"] ** 2))
+            specs.append(FilterSpec(fc.label, fc.kind, flt, report_model, self.prior["acc_sigma"] ** 2, view))
         return specs
 
     def monte_carlo(self, runs=None, seed=None, progress=None, chunk=None):
@@ -184,6 +195,20 @@ class Experiment:
         return write_results(self, res, out, figures=figures)
 
 
+def _view(suite: SensorSuite, names, fusion):
+    names = tuple(names) or tuple(s.name for s in suite.sensors)
+    if fusion is not None:
+        sub = suite.subset(names)
+        laser = next(s.name for s in sub.sensors if s.kind == "spherical")
+        ir = next(s.name for s in sub.sensors if s.kind == "angles")
+        v = LaserIrFusion(suite, laser, ir, fusion)
+        return v, v.model
+    if len(names) == len(suite.sensors):
+        return None, suite.sensors[0] if len(suite.sensors) == 1 else suite
+    v = Select(suite, names)
+    return v, v.model
+
+
 def _read_toml(path: Path):
     if not path.is_file():
         raise ConfigError(path, "file", str(path), "experiment file does not exist")
@@ -193,6 +218,74 @@ def _read_toml(path: Path):
         raise ConfigError(path, "file", "", f"is not valid TOML ({e})") from None
     except (OSError, UnicodeDecodeError) as e:
         raise ConfigError(path, "file", "", f"cannot be read ({e.__class__.__name__})") from None
+
+
+def _multiple_of(value, dt):
+    n = value / dt
+    return abs(n - round(n)) < 1e-6
+
+
+def _sigma_list(f, field_name, s, dim, required=True):
+    if s is None:
+        if required:
+            raise ConfigError(f, field_name, None, "is required (a number or a list of one per axis)")
+        return None
+    vals = s if isinstance(s, list) else [s] * dim
+    if len(vals) != dim:
+        raise ConfigError(f, field_name, s, f"must have {dim} values (one per axis) or be a single number")
+    for v in vals:
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= MAX_MAGNITUDE:
+            raise ConfigError(f, field_name, s, f"each value must be a number in (0, {MAX_MAGNITUDE:g}]")
+    return tuple(float(v) for v in vals)
+
+
+def _sensor_tables(f, raw):
+    tables = raw["sensor"]
+    if isinstance(tables, dict):
+        return [("sensor", tables)]
+    if isinstance(tables, list) and tables and all(isinstance(t, dict) for t in tables):
+        return [(f"sensor[{i}]", t) for i, t in enumerate(tables, start=1)]
+    raise ConfigError(f, "sensor", tables, "must be a [sensor] table or one or more [[sensor]] tables")
+
+
+def _parse_sensors(f, raw, dt, steps):
+    """First pass: kinds and names (the scenario's dimension may depend on them)."""
+    out = []
+    for where, table in _sensor_tables(f, raw):
+        sn = _Section(f, where, table)
+        kind = sn.string("kind", required=True, choices=tuple(SENSOR_KINDS))
+        out.append((where, sn, kind))
+    return out
+
+
+def _build_sensors(f, parsed, dim, dt):
+    sensors, names = [], set()
+    for where, sn, kind in parsed:
+        name = sn.string("name", kind)
+        if not NAME_RE.fullmatch(name):
+            raise ConfigError(f, f"{where}.name", name, "must be 1-100 characters of letters, digits, '_', '.', '-'")
+        if name in names:
+            raise ConfigError(f, f"{where}.name", name, "must be unique among the sensors")
+        names.add(name)
+        if SENSOR_DIM.get(kind, dim) != dim:
+            hint = " (set scenario.altitude for a 3-D crossing)" if SENSOR_DIM[kind] == 3 else " (remove scenario.altitude, or use a 3-D sensor)"
+            raise ConfigError(f, f"{where}.kind", kind, f"observes {SENSOR_DIM[kind]}-D positions but the scenario is {dim}-D{hint}")
+        p_detect = sn.number("p_detect", 1.0)
+        if not 0.0 < p_detect <= 1.0:
+            raise ConfigError(f, f"{where}.p_detect", p_detect, "must be a probability in (0, 1]")
+        period = sn.number("period", dt, positive=True)
+        if not _multiple_of(period, dt):
+            raise ConfigError(f, f"{where}.period", period, f"must be a whole multiple of experiment.dt = {dt}")
+        offset = sn.number("offset", 0.0, nonneg=True)
+        if not _multiple_of(offset, dt):
+            raise ConfigError(f, f"{where}.offset", offset, f"must be a whole multiple of experiment.dt = {dt}")
+        if kind == "cartesian":
+            sigma = _sigma_list(f, f"{where}.sigma", sn.get("sigma"), dim)
+        else:
+            sigma = tuple(sn.number(k, required=True, positive=True) for k in SENSOR_SIGMAS[kind])
+        sn.check_unknown()
+        sensors.append(Sensor(kind, dim, sigma, p_detect, name=name, dt=dt, period=period, offset=offset))
+    return SensorSuite(tuple(sensors))
 
 
 def load_experiment(path) -> Experiment:
@@ -222,17 +315,15 @@ def load_experiment(path) -> Experiment:
     ex.get("description")
     ex.check_unknown()
 
-    sn = _Section(f, "sensor", raw["sensor"])
-    skind = sn.string("kind", required=True, choices=tuple(SENSOR_KINDS))
-    p_detect = sn.number("p_detect", 1.0)
-    if not 0.0 < p_detect <= 1.0:
-        raise ConfigError(f, "sensor.p_detect", p_detect, "must be a probability in (0, 1]")
+    parsed_sensors = _parse_sensors(f, raw, dt, steps)
+    fixed_dims = {SENSOR_DIM[k] for _, _, k in parsed_sensors if k in SENSOR_DIM}
+    sensor_dim = fixed_dims.pop() if len(fixed_dims) == 1 else None
+    if len(fixed_dims) > 0:
+        raise ConfigError(f, "[[sensor]]", "...", "all sensors must observe positions of the same dimension")
 
     sc = _Section(f, "scenario", raw["scenario"])
-    kind = sc.string("kind", required=True, choices=("crossing", "trajectory"))
-    sensor_dim = {"polar": 2, "spherical": 3}.get(skind)
+    kind = sc.string("kind", required=True, choices=("crossing", "constant_velocity", "trajectory"))
     if kind == "crossing":
-        altitude = sc.number("altitude", None)
         scenario = Crossing(
             dt=dt,
             steps=steps,
@@ -240,11 +331,18 @@ def load_experiment(path) -> Experiment:
             offset=sc.number("offset", 20000.0),
             start_x=sc.number("start_x", -20000.0),
             accel_sigma=sc.number("accel_sigma", 1.0, nonneg=True),
-            altitude=altitude,
+            altitude=sc.number("altitude", None),
         )
-        if sensor_dim is not None and sensor_dim != scenario.dim:
-            hint = "set scenario.altitude for a 3-D crossing" if sensor_dim == 3 else "remove scenario.altitude"
-            raise ConfigError(f, "sensor.kind", skind, f"observes {sensor_dim}-D positions but the scenario is {scenario.dim}-D ({hint})")
+    elif kind == "constant_velocity":
+        init = sc.get("initial")
+        if (
+            not isinstance(init, list)
+            or len(init) not in (2, 4, 6)
+            or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or abs(v) > MAX_MAGNITUDE for v in init)
+        ):
+            raise ConfigError(f, "scenario.initial", init, "must be 2, 4 or 6 finite numbers [x, vx(, y, vy(, z, vz))]")
+        scenario = ConstantVelocity(dt=dt, steps=steps, initial=tuple(float(v) for v in init),
+                                    accel_sigma=sc.number("accel_sigma", 0.0, nonneg=True))
     else:
         p = sc.string("path", required=True)
         tpath = (path.parent / p).resolve()
@@ -254,7 +352,7 @@ def load_experiment(path) -> Experiment:
             raise ConfigError(f, "scenario.path", p, f"trajectory file {e}") from None
         dims = sc.integer("dims", sensor_dim or 3, lo=2, hi=3)
         if sensor_dim is not None and dims != sensor_dim:
-            raise ConfigError(f, "scenario.dims", dims, f"must be {sensor_dim} for a '{skind}' sensor")
+            raise ConfigError(f, "scenario.dims", dims, f"must be {sensor_dim} for the sensors given")
         start = sc.number("start", 0.0, nonneg=True)
         scenario = Trajectory(path=str(tpath), dt=dt, steps=steps, dim=dims, start=start)
         avail = scenario.max_steps()
@@ -262,27 +360,8 @@ def load_experiment(path) -> Experiment:
             raise ConfigError(f, "experiment.steps", steps, f"the trajectory from start = {start} s holds at most {avail} steps of {dt} s")
     sc.check_unknown()
     dim = scenario.dim
+    suite = _build_sensors(f, parsed_sensors, dim, dt)
 
-    # sensor noise
-    if skind == "cartesian":
-        s = sn.get("sigma")
-        vals = s if isinstance(s, list) else [s] * dim
-        if s is None:
-            raise ConfigError(f, "sensor.sigma", None, "is required (a number or a list of one per axis)")
-        if len(vals) != dim:
-            raise ConfigError(f, "sensor.sigma", s, f"must have {dim} values (one per axis) or be a single number")
-        sig = []
-        for v in vals:
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= MAX_MAGNITUDE:
-                raise ConfigError(f, "sensor.sigma", s, f"each value must be a number in (0, {MAX_MAGNITUDE:g}]")
-            sig.append(float(v))
-        sigma = tuple(sig)
-    else:
-        sigma = tuple(sn.number(k, required=True, positive=True) for k in SENSOR_SIGMAS[skind])
-    sn.check_unknown()
-    sensor = Sensor(kind=skind, dim=dim, sigma=sigma, p_detect=p_detect)
-
-    # prior
     pr = _Section(f, "prior", raw.get("prior", {}))
     prior = {
         "pos_sigma": pr.number("pos_sigma", 100.0, positive=True),
@@ -291,52 +370,17 @@ def load_experiment(path) -> Experiment:
     }
     pr.check_unknown()
 
-    # filters
     flist = raw.get("filter")
     if not isinstance(flist, list) or not flist:
         raise ConfigError(f, "[[filter]]", flist, "at least one [[filter]] table is required")
     filters, labels = [], set()
     default_q = getattr(scenario, "accel_sigma", 1.0)
     for i, table in enumerate(flist, start=1):
-        fs = _Section(f, f"filter[{i}]", table)
-        fkind = fs.string("kind", required=True, choices=tuple(FILTER_KINDS))
-        label = fs.string("label", fkind)
-        if not label.strip():
-            raise ConfigError(f, f"filter[{i}].label", label, "must not be empty")
-        if label in labels:
-            raise ConfigError(f, f"filter[{i}].label", label, "must be unique among the filters")
-        labels.add(label)
-        ok_sensors = FILTER_KINDS[fkind][1]
-        if skind not in ok_sensors:
-            raise ConfigError(f, f"filter[{i}].kind", fkind, f"needs a sensor of kind {' or '.join(ok_sensors)}, not '{skind}'")
-        model = fs.string("model", "cv", choices=tuple(MODELS))
-        if fkind == "polar_kf" and model != "cv":
-            raise ConfigError(f, f"filter[{i}].model", model, "polar_kf has its own polar CV state: use model = \"cv\"")
-        if model == "cv":
-            q = fs.number("accel_sigma", default_q if default_q > 0 else 1.0, positive=True) ** 2
-        else:
-            q = fs.number("accel_increment_sigma", 1.0, positive=True) ** 2
-        options = {}
-        if fkind == "cmkf":
-            debias = fs.string("debias", "plain", choices=("plain", "additive", "unbiased"))
-            if debias == "additive" and skind != "polar":
-                raise ConfigError(f, f"filter[{i}].debias", debias, "the additive (Lerro) conversion is 2-D: use plain or unbiased with a spherical sensor")
-            options["debias"] = debias
-        if skind == "cartesian":
-            s = fs.get("sigma")
-            if s is None:
-                r = tuple(v**2 for v in sigma)
-            else:
-                vals = s if isinstance(s, list) else [s] * dim
-                if len(vals) != dim or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= MAX_MAGNITUDE for v in vals):
-                    raise ConfigError(f, f"filter[{i}].sigma", s, f"must be a number in (0, {MAX_MAGNITUDE:g}] or {dim} of them")
-                r = tuple(float(v) ** 2 for v in vals)
-        else:
-            r = tuple(
-                fs.number(k, sv, positive=True) ** 2 for k, sv in zip(SENSOR_SIGMAS[skind], sigma)
-            )
-        fs.check_unknown()
-        filters.append(FilterConfig(label, fkind, model, q, r, options))
+        fc = _parse_filter(f, i, table, suite, dim, dt, default_q)
+        if fc.label in labels:
+            raise ConfigError(f, f"filter[{i}].label", fc.label, "must be unique among the filters")
+        labels.add(fc.label)
+        filters.append(fc)
 
     rp = _Section(f, "report", raw.get("report", {}))
     w = rp.get("window", [1, steps])
@@ -350,17 +394,113 @@ def load_experiment(path) -> Experiment:
     rp.check_unknown()
 
     return Experiment(
-        path=path,
-        name=name,
-        runs=runs,
-        seed=seed,
-        dt=dt,
-        steps=steps,
-        chunk=chunk,
-        scenario=scenario,
-        sensor=sensor,
-        filters=filters,
-        prior=prior,
-        window=(w[0], w[1]),
-        raw=raw,
+        path=path, name=name, runs=runs, seed=seed, dt=dt, steps=steps, chunk=chunk, scenario=scenario,
+        sensor=suite, filters=filters, prior=prior, window=(w[0], w[1]), raw=raw,
     )
+
+
+def _gain_value(fs, key, required=True):
+    v = fs.get(key)
+    if v is None:
+        if required:
+            raise fs._err(key, None, "is required for explicit gains")
+        return None
+    vals = v if isinstance(v, list) else [v]
+    if any(isinstance(x, bool) or not isinstance(x, (int, float)) or not 0 < x < 4 for x in vals):
+        raise fs._err(key, v, "must be a number (or one per axis) in (0, 4)")
+    return tuple(float(x) for x in vals) if isinstance(v, list) else float(v)
+
+
+def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q) -> FilterConfig:
+    fs = _Section(f, f"filter[{i}]", table)
+    fkind = fs.string("kind", required=True, choices=tuple(FILTER_KINDS))
+    label = fs.string("label", fkind)
+    if not label.strip():
+        raise ConfigError(f, f"filter[{i}].label", label, "must not be empty")
+
+    # what the filter sees
+    all_names = tuple(s.name for s in suite.sensors)
+    names = fs.get("sensors", list(all_names))
+    if not isinstance(names, list) or not names or any(not isinstance(n, str) or n not in all_names for n in names):
+        raise ConfigError(f, f"filter[{i}].sensors", names, f"must be a list of sensor names from: {', '.join(all_names)}")
+    names = tuple(dict.fromkeys(names))
+    fusion = fs.string("fusion", None, choices=("interpolate", "none"))
+    if fusion is not None:
+        kinds = sorted(s.kind for s in suite.subset(names).sensors)
+        if kinds != ["angles", "spherical"]:
+            raise ConfigError(f, f"filter[{i}].fusion", fusion, "needs exactly one 'spherical' (laser) and one 'angles' (infrared) sensor among filter.sensors")
+        ir = next(s for s in suite.subset(names).sensors if s.kind == "angles")
+        if ir.p_detect < 1.0:
+            raise ConfigError(f, f"filter[{i}].fusion", fusion, "registration needs every infrared report: set its p_detect = 1")
+    _, meas = _view(suite, names, fusion)
+    mkind = meas.kind
+    ok = FILTER_KINDS[fkind][1]
+    if mkind not in ok:
+        seen = "several sensors" if mkind == "suite" else f"a '{mkind}' sensor"
+        raise ConfigError(f, f"filter[{i}].kind", fkind, f"needs a sensor of kind {' or '.join(ok)}, but sees {seen}")
+
+    model = fs.string("model", "ca" if fkind == "alpha_beta_gamma" else "cv", choices=tuple(MODELS))
+    if fkind == "polar_kf" and model != "cv":
+        raise ConfigError(f, f"filter[{i}].model", model, "polar_kf has its own polar CV state: use model = \"cv\"")
+    if fkind == "alpha_beta" and model != "cv" or fkind == "alpha_beta_gamma" and model != "ca":
+        need = "cv" if fkind == "alpha_beta" else "ca"
+        raise ConfigError(f, f"filter[{i}].model", model, f"{fkind} works on the {need} model")
+    if model == "cv":
+        sigma_v = fs.number("accel_sigma", default_q if default_q > 0 else 1.0, positive=True)
+    else:
+        sigma_v = fs.number("accel_increment_sigma", 1.0, positive=True)
+
+    options = {}
+    if fkind == "cmkf":
+        debias = fs.string("debias", "plain", choices=("plain", "additive", "unbiased"))
+        if debias == "additive" and mkind != "polar":
+            raise ConfigError(f, f"filter[{i}].debias", debias, "the additive (Lerro) conversion is 2-D: use plain or unbiased with a spherical sensor")
+        options["debias"] = debias
+
+    # the noise the filter assumes: defaults to the sensors' own
+    if mkind == "suite":
+        r = tuple(v**2 for v in meas.sigma)
+    elif mkind == "cartesian":
+        r = tuple(v**2 for v in (_sigma_list(f, f"filter[{i}].sigma", fs.get("sigma"), dim, required=False) or meas.sigma))
+    else:
+        r = tuple(fs.number(k, sv, positive=True) ** 2 for k, sv in zip(SENSOR_SIGMAS[mkind], meas.sigma))
+    params = {"q": sigma_v**2, "r": r}
+
+    if fkind in ("alpha_beta", "alpha_beta_gamma"):
+        order = 2 if fkind == "alpha_beta" else 3
+        gnames = ("alpha", "beta", "gamma")[:order]
+        explicit = any(fs.has(g) for g in gnames)
+        gains = fs.string("gains", "explicit" if explicit else "kalata", choices=("kalata", "growing_memory", "explicit"))
+        if mkind != "cartesian":
+            options["conversion"] = fs.string("conversion", "plain", choices=("plain", "unbiased"))
+        if gains == "explicit":
+            for g in gnames:
+                params[g] = _gain_value(fs, g)
+        elif explicit:
+            raise ConfigError(f, f"filter[{i}].gains", gains, "explicit alpha/beta/gamma need gains = \"explicit\" (or no gains field)")
+        floor = fs.get("floor") if gains == "growing_memory" else None
+        if gains == "growing_memory" and floor is not None:
+            if floor == "kalata":
+                options["floor"] = "kalata"
+            elif isinstance(floor, list) and len(floor) == order and all(
+                not isinstance(v, bool) and isinstance(v, (int, float)) and 0 <= v < 4 for v in floor
+            ):
+                options["floor"] = "explicit"
+                params["floor"] = tuple(float(v) for v in floor)
+            else:
+                raise ConfigError(f, f"filter[{i}].floor", floor, f"must be \"kalata\" or {order} gains [{', '.join(gnames)}] in [0, 4)")
+        options["gains"] = gains
+        if gains == "kalata" or options.get("floor") == "kalata":
+            lam = fs.number("tracking_index", None, positive=True)
+            if lam is None:
+                sw = fs.get("sigma_w")
+                if sw is None and mkind != "cartesian":
+                    raise ConfigError(f, f"filter[{i}].sigma_w", None, "is required (position-noise std per axis, m) for Kalata gains behind a non-Cartesian sensor, unless tracking_index is given")
+                sigma_w = _sigma_list(f, f"filter[{i}].sigma_w", sw, dim) if sw is not None else tuple(np.sqrt(r))
+                T = getattr(meas, "period", 0.0) or dt  # the update interval
+                lam = tuple(sigma_v * T**2 / w for w in sigma_w)
+            else:
+                fs.get("sigma_w")
+            params["lam"] = lam
+    fs.check_unknown()
+    return FilterConfig(label, fkind, model, params, options, names if names != all_names else (), fusion)

@@ -26,7 +26,7 @@ import numpy as np
 from tracklab.filters.core import Filter, Meas, Prior
 from tracklab.linalg import mahalanobis2
 from tracklab.models import Kinematic
-from tracklab.sensors import Sensor
+from tracklab.sensors import SensorSuite
 
 
 @dataclass(frozen=True)
@@ -38,6 +38,7 @@ class FilterSpec:
     filter: Filter
     model: Kinematic  # the reporting frame's layout (pos_idx, vel_idx, embed)
     prior_extra_var: float = 0.0  # prior variance of states beyond position/velocity
+    view: Callable | None = None  # what the filter sees of the sensors' z (T, M) -> (T, m)
 
     @property
     def pv_index(self) -> np.ndarray:
@@ -69,13 +70,13 @@ class MonteCarloResult:
     steps: int
     dt: float
     dim: int
-    meas_dim: dict[str, int]
     sums: dict[str, dict[str, np.ndarray]]  # label -> name -> (T, ...)
     pcrlb: np.ndarray | None  # (T, 2·dim, 2·dim) bound on the CV-layout state, or None
     wall_s: float
     compile_s: float
     labels: list[str]
     kinds: dict[str, str]
+    example: dict = field(default_factory=dict)  # run 0: truth, z, and each filter's estimates
 
 
 def _run_keys(key, idx):
@@ -87,6 +88,8 @@ def _run_keys(key, idx):
 def _filter_chunk(spec: FilterSpec, params, truth, z, prior_cv, P0_cv, live, dt):
     """Run one filter over a chunk; reduce to per-step sums over healthy runs."""
     flt = spec.filter
+    if spec.view is not None:
+        z = jax.vmap(spec.view)(z)
     pv = spec.pv_index
     n_rep = len(pv)
     d = n_rep // 2
@@ -95,23 +98,28 @@ def _filter_chunk(spec: FilterSpec, params, truth, z, prior_cv, P0_cv, live, dt)
     x0, P0 = spec.model.embed(prior_cv, P0_cv, spec.prior_extra_var)
     state = jax.vmap(flt.init, in_axes=(None, 0))(params, Prior(x0, jnp.broadcast_to(P0, (B,) + P0.shape)))
     step = jax.vmap(flt.step, in_axes=(None, 0, 0))
+    coast = None if flt.coast is None else jax.vmap(flt.coast, in_axes=(None, 0, 0))
     t = dt * jnp.arange(1, T + 1, dtype=z.dtype)
     ones = jnp.ones((B,), bool)
 
     def body(state, inp):
         z_k, truth_k, t_k = inp
-        state, out = step(params, state, Meas(z_k, jnp.full((B,), t_k), ones))
+        meas = Meas(z_k, jnp.full((B,), t_k), ones)
+        if coast is None:
+            state, out = step(params, state, meas)
+        else:  # no run has a measurement at this step (a sensor between reports): predict only
+            state, out = jax.lax.cond(jnp.any(jnp.isfinite(z_k)), step, coast, params, state, meas)
         e = out.x[:, pv] - truth_k  # (B, 2d) CV layout
         Pe = out.P[:, pv[:, None], pv[None, :]]
         nees = jax.vmap(mahalanobis2)(Pe, e)  # NaN when P is not positive definite
         nis = jnp.where(out.valid, jax.vmap(mahalanobis2)(out.S, out.nu), 0.0)
         bad = ~(jnp.isfinite(nees) & jnp.all(jnp.isfinite(out.x), axis=-1))
         bad = bad | (out.valid & ~jnp.isfinite(nis))
-        return state, (e, nees, nis, out.valid, bad)
+        return state, (e, nees, nis, out.valid, out.dof, bad, out.x[0, pv])
 
     zs = jnp.swapaxes(z, 0, 1)
     truths = jnp.swapaxes(truth[:, 1:], 0, 1)
-    _, (e, nees, nis, upd, bad) = jax.lax.scan(body, state, (zs, truths, t))  # (T, B, ...)
+    _, (e, nees, nis, upd, dof, bad, x_first) = jax.lax.scan(body, state, (zs, truths, t))  # (T, B, ...)
 
     diverged = jnp.any(bad, axis=0)  # (B,)
     ok = live & ~diverged
@@ -133,10 +141,12 @@ def _filter_chunk(spec: FilterSpec, params, truth, z, prior_cv, P0_cv, live, dt)
         "sum_nees": jnp.sum(jnp.where(ok[None, :], nees, 0.0), axis=1),
         "sum_nis": jnp.sum(jnp.where(ok[None, :], nis, 0.0) * updf, axis=1),
         "count_nis": jnp.sum(updf, axis=1),
+        "dof_nis": jnp.sum(dof * updf, axis=1),
+        "example_x": x_first,  # the chunk's first run: estimates (T, 2d) in CV layout
     }
 
 
-def make_chunk_fn(scenario, sensor: Sensor, specs: Sequence[FilterSpec], P0_cv, dt):
+def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt):
     """The jitted per-chunk computation: (params_list, key, idx, live) -> sums."""
     d = scenario.dim
     P0_cv = jnp.asarray(P0_cv)
@@ -146,12 +156,14 @@ def make_chunk_fn(scenario, sensor: Sensor, specs: Sequence[FilterSpec], P0_cv, 
         k_truth, k_meas, k_prior = _run_keys(key, idx)
         truth = jax.vmap(scenario.simulate)(k_truth)  # (B, T+1, 2d)
         pos = truth[:, 1:, 0::2]
-        z = jax.vmap(sensor.measure)(k_meas, pos)  # (B, T, m)
+        z = jax.vmap(sensor.measure)(k_meas, pos)  # (B, T, M)
         w = jax.vmap(lambda k: jax.random.normal(k, (2 * d,), truth.dtype))(k_prior)
         prior = truth[:, 0] + w @ L0.T
-        info = jax.vmap(jax.vmap(sensor.position_information))(pos)  # (B, T, d, d)
-        out = {"_info": jnp.sum(jnp.where(live[:, None, None, None], info, 0.0), axis=0),
-               "_live": jnp.sum(live.astype(truth.dtype))}
+        info = jax.vmap(sensor.information)(pos)  # (B, T, d, d)
+        out = {
+            "_info": jnp.sum(jnp.where(live[:, None, None, None], info, 0.0), axis=0),
+            "_example": {"truth": truth[0], "z": z[0]},
+        }
         for spec, params in zip(specs, params_list):
             out[spec.label] = _filter_chunk(spec, params, truth, z, prior, P0_cv, live, dt)
         return out
@@ -169,7 +181,7 @@ def _run_sharding():
 
 def monte_carlo(
     scenario,
-    sensor: Sensor,
+    sensor,
     specs: Sequence[FilterSpec],
     runs: int,
     key,
@@ -186,6 +198,8 @@ def monte_carlo(
     by all filters in that run.
     """
     dt = float(scenario.dt)
+    if not isinstance(sensor, SensorSuite):
+        sensor = SensorSuite((sensor,))
     sharding, n_dev = _run_sharding()
     chunk = int(min(chunk or 1000, runs))
     chunk = -(-chunk // n_dev) * n_dev  # a multiple of the device count
@@ -196,6 +210,7 @@ def monte_carlo(
 
     acc = {s.label: Sums() for s in specs}
     info = np.zeros((scenario.steps, scenario.dim, scenario.dim))
+    example = {}
     t_start = time.perf_counter()
     compile_s = 0.0
     n_chunks = -(-runs // chunk)
@@ -210,8 +225,12 @@ def monte_carlo(
         if c == 0:
             compile_s = time.perf_counter() - t0
         info += out.pop("_info")
-        out.pop("_live")
+        ex = out.pop("_example")
+        if c == 0:  # run 0, for trajectory figures
+            example = {"truth": np.asarray(ex["truth"]), "z": np.asarray(ex["z"])}
+            example["x"] = {s.label: np.asarray(out[s.label]["example_x"]) for s in specs}
         for label, sums in out.items():
+            sums.pop("example_x")
             acc[label].add(sums)
         if progress:
             progress(min((c + 1) * chunk, runs), runs)
@@ -222,18 +241,14 @@ def monte_carlo(
         steps=scenario.steps,
         dt=dt,
         dim=scenario.dim,
-        meas_dim={s.label: _meas_dim(s, sensor) for s in specs},
         sums={label: a.data for label, a in acc.items()},
         pcrlb=_pcrlb(scenario, np.asarray(P0_cv), info / runs),
         wall_s=wall,
         compile_s=compile_s,
         labels=[s.label for s in specs],
         kinds={s.label: s.kind for s in specs},
+        example=example,
     )
-
-
-def _meas_dim(spec: FilterSpec, sensor: Sensor) -> int:
-    return sensor.dim if spec.kind == "cmkf" else sensor.m
 
 
 def _pcrlb(scenario, P0_cv, info_pos):
@@ -267,9 +282,10 @@ class FilterResult:
     x: jax.Array  # (..., T, n) filtered means
     P: jax.Array  # (..., T, n, n) filtered covariances
     x_pred: jax.Array  # (..., T, n) one-step predictions
-    nu: jax.Array  # (..., T, m) innovations (0 where no update)
+    nu: jax.Array  # (..., T, m) innovations (0 where not used)
     S: jax.Array  # (..., T, m, m) innovation covariances
     valid: jax.Array  # (..., T) update happened
+    dof: jax.Array  # (..., T) innovation components used
 
 
 def run_filter(flt: Filter, z, *, x0, P0, params=None, dt: float = 1.0) -> FilterResult:
@@ -304,7 +320,7 @@ def _run_filter_impl(init, step, params, z, x0, P0, dt):
         return s, out
 
     _, out = jax.lax.scan(body, state, (jnp.swapaxes(z, 0, 1), t))
-    return tuple(jnp.swapaxes(a, 0, 1) for a in (out.x, out.P, out.x_pred, out.nu, out.S, out.valid))
+    return tuple(jnp.swapaxes(a, 0, 1) for a in out)
 
 
 _run_filter_jit = jax.jit(_run_filter_impl, static_argnums=(0, 1, 6))

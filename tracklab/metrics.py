@@ -28,11 +28,16 @@ def chi2_quantile(p, dof):
     return 0.5 * (lo + hi)
 
 
-def average_chi2_interval(dof, n, level=0.95):
-    """Interval for the average of n independent χ²(dof) values: χ²(n·dof)/n quantiles."""
+def average_chi2_interval(dof, n, level=0.95, total_dof=None):
+    """Interval for the average of n independent χ² values with ``dof`` each.
+
+    The sum is χ² with n·dof degrees of freedom (or ``total_dof`` when the
+    terms have different dof, e.g. NIS of partial measurements).
+    """
     n = np.maximum(np.asarray(n, float), 1.0)
+    D = n * dof if total_dof is None else np.maximum(np.asarray(total_dof, float), 1.0)
     a = (1.0 - level) / 2.0
-    return chi2_quantile(a, n * dof) / n, chi2_quantile(1.0 - a, n * dof) / n
+    return chi2_quantile(a, D) / n, chi2_quantile(1.0 - a, D) / n
 
 
 def _div(a, b):
@@ -46,7 +51,7 @@ def _inside(v, lo, hi):
         return np.where(np.isfinite(v), ((v >= lo) & (v <= hi)).astype(float), np.nan)
 
 
-def per_step(sums, dim, meas_dim, runs):
+def per_step(sums, dim):
     """Per-step series for one filter from its sums."""
     c = sums["count"]
     s = {}
@@ -67,7 +72,7 @@ def per_step(sums, dim, meas_dim, runs):
     s["nees_lo"], s["nees_hi"] = average_chi2_interval(2 * dim, c)
     s["nees_in_bounds"] = _inside(s["nees"], s["nees_lo"], s["nees_hi"])
     s["nis"] = _div(sums["sum_nis"], sums["count_nis"])
-    s["nis_lo"], s["nis_hi"] = average_chi2_interval(meas_dim, sums["count_nis"])
+    s["nis_lo"], s["nis_hi"] = average_chi2_interval(None, sums["count_nis"], total_dof=sums["dof_nis"])
     s["nis_in_bounds"] = _inside(s["nis"], s["nis_lo"], s["nis_hi"])
     s["healthy_runs"] = c
     return s
@@ -127,7 +132,7 @@ def statistics(result, window):
     filters = {}
     for label in result.labels:
         sums = result.sums[label]
-        series = per_step(sums, result.dim, result.meas_dim[label], result.runs)
+        series = per_step(sums, result.dim)
         summary = summarise(
             series,
             window,

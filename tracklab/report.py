@@ -110,6 +110,7 @@ def stats_document(exp, res):
         "compile_s": res.compile_s,
         "experiment": exp.raw,
         "bounds": st["bounds"],
+        "example_run": _example(exp, res),
         "filters": {
             label: {"kind": f["kind"], "label": label, "summary": f["summary"], "series": f["series"]}
             for label, f in st["filters"].items()
@@ -125,6 +126,18 @@ def results_folder(exp, out=None) -> Path:
     if out.exists() and not out.is_dir():
         raise ConfigError(exp.path, "--out", str(out), "exists and is not a folder")
     return out
+
+
+def _example(exp, res):
+    """Run 0 in CV layout: truth, each filter's estimates and (Cartesian sensors) the measurements."""
+    ex = res.example
+    if not ex:
+        return {}
+    doc = {"truth": ex["truth"][1:], "estimates": ex["x"]}
+    kinds = [s.kind for s in exp.sensor.sensors]
+    if kinds == ["cartesian"]:
+        doc["measurements"] = ex["z"]
+    return doc
 
 
 def write_results(exp, res, out=None, figures=True):
@@ -204,6 +217,10 @@ def plot_figures(doc, folder: Path):
     fig.savefig(folder / "mean_error.png", dpi=110)
     plt.close(fig)
 
+    example = doc.get("example_run") or {}
+    if example:
+        plot_example(doc, example, t, dim, folder)
+
     # average NEES with its 95 % interval
     fig, ax = plt.subplots(figsize=(8, 3.5))
     for label, f in filters.items():
@@ -220,3 +237,38 @@ def plot_figures(doc, folder: Path):
     fig.tight_layout()
     fig.savefig(folder / "nees.png", dpi=110)
     plt.close(fig)
+
+
+def plot_example(doc, example, t, dim, folder: Path):
+    """Run 0: true and estimated position and velocity, and their errors (paper 002 Figs. 4–7)."""
+    import matplotlib.pyplot as plt
+
+    truth = np.asarray(example["truth"], float)
+    est = {k: np.asarray(v, float) for k, v in example["estimates"].items()}
+    z = np.asarray(example["measurements"], float) if "measurements" in example else None
+    names = [("position", "m", 0), ("velocity", "m/s", 1)]
+    for kind in ("state", "error"):
+        fig, axes = plt.subplots(2, dim, figsize=(5 * dim, 6), sharex=True, squeeze=False)
+        for a in range(dim):
+            for row, (q, unit, j) in enumerate(names):
+                ax = axes[row, a]
+                col = 2 * a + j
+                if kind == "state":
+                    if z is not None and j == 0:
+                        ax.plot(t, z[:, a], ".", color="0.7", ms=2, label="measured")
+                    ax.plot(t, truth[:, col], "k-", lw=1.5, label="true")
+                    for label, x in est.items():
+                        ax.plot(t, x[:, col], lw=1, label=label)
+                else:
+                    for label, x in est.items():
+                        ax.plot(t, x[:, col] - truth[:, col], lw=1, label=label)
+                    ax.axhline(0, color="k", lw=0.6)
+                ax.set_ylabel(f"{q} {AXES[a]} ({unit})" if kind == "state" else f"{q} error {AXES[a]} ({unit})")
+                ax.grid(True, alpha=0.3)
+        axes[0, 0].legend(fontsize=7)
+        axes[0, 0].set_title(f"{doc['name']} — run 0")
+        for ax in axes[-1]:
+            ax.set_xlabel("time (s)")
+        fig.tight_layout()
+        fig.savefig(folder / ("run0.png" if kind == "state" else "run0_error.png"), dpi=110)
+        plt.close(fig)

@@ -1,5 +1,13 @@
 """Filters: pure ``init``/``step`` pairs over pytrees (see ``core``)."""
 
+from tracklab.filters.alphabeta import (
+    kalata_alpha_beta,
+    kalata_alpha_beta_gamma,
+    growing_memory_alpha_beta,
+    growing_memory_alpha_beta_gamma,
+    model_alpha_beta,
+    tracking_index,
+)
 from tracklab.filters.core import Filter, Gaussian, Meas, Out, Prior, kalman_update, wrap_angle
 from tracklab.filters.kalman import (
     ekf,
@@ -13,18 +21,20 @@ from tracklab.filters.kalman import (
 )
 from tracklab.filters.polar import model_polar_kf
 
-# kind -> (one-line description, sensors it accepts)
+# kind -> (one-line description, measurement models it accepts; "suite" = several sensors)
 FILTER_KINDS = {
     "kf": ("linear Kalman filter (needs a linear 'cartesian' sensor)", ("cartesian",)),
-    "ekf": ("extended Kalman filter, Jacobians by autodiff", ("polar", "spherical", "cartesian")),
+    "ekf": ("extended Kalman filter, Jacobians by autodiff", ("polar", "spherical", "angles", "cartesian", "suite")),
     "cmkf": ("converted-measurement KF; debias = plain | additive | unbiased", ("polar", "spherical")),
     "polar_kf": ("polar-state KF [r, ṙ, β, β̇], two decoupled channels (2-D)", ("polar",)),
-    "sequential_ekf": ("sequential EKF: angles first, re-linearise, then range", ("polar", "spherical")),
+    "sequential_ekf": ("sequential EKF: angles first, re-linearise, then range", ("polar", "spherical", "angles", "suite")),
+    "alpha_beta": ("α-β filter; gains = kalata | growing_memory | explicit alpha, beta", ("cartesian", "polar", "spherical")),
+    "alpha_beta_gamma": ("α-β-γ filter; gains = kalata | growing_memory | explicit", ("cartesian", "polar", "spherical")),
 }
 
 
 def build(kind, model, sensor, params, options=None) -> Filter:
-    """Build an experiment filter of ``kind`` for a motion model and a sensor."""
+    """Build an experiment filter of ``kind`` for a motion model and a measurement model."""
     options = options or {}
     if kind == "kf":
         return model_kf(model, sensor, params)
@@ -36,10 +46,15 @@ def build(kind, model, sensor, params, options=None) -> Filter:
         return model_polar_kf(model.F[0, 1], sensor, params)
     if kind == "sequential_ekf":
         return model_sequential_ekf(model, sensor, params)
+    if kind in ("alpha_beta", "alpha_beta_gamma"):
+        return model_alpha_beta(
+            model, sensor, params, options.get("gains", "kalata"), options.get("floor"), options.get("conversion", "plain")
+        )
     raise KeyError(kind)
 
 
 __all__ = [
     "FILTER_KINDS", "Filter", "Gaussian", "Meas", "Out", "Prior", "build", "ekf", "gaussian_filter",
-    "kalman_update", "kf", "noise_params", "wrap_angle",
+    "growing_memory_alpha_beta", "growing_memory_alpha_beta_gamma", "kalata_alpha_beta", "kalata_alpha_beta_gamma",
+    "kalman_update", "kf", "model_alpha_beta", "noise_params", "tracking_index", "wrap_angle",
 ]

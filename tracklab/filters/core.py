@@ -42,8 +42,9 @@ class Out(NamedTuple):
     ``x``/``P`` are the filtered mean and covariance in the reporting frame
     (Cartesian, in the layout of the filter's motion model); ``x_pred`` is the
     one-step prediction in the same frame; ``nu``/``S`` are the innovation and
-    its covariance in the filter's measurement space (zero-filled on a missed
-    detection); ``valid`` says whether an update happened.
+    its covariance in the filter's measurement space (components not used are
+    zero in ``nu`` and decoupled with unit variance in ``S``); ``valid`` says
+    whether an update happened and ``dof`` how many innovation components it used.
     """
 
     x: jax.Array
@@ -52,12 +53,16 @@ class Out(NamedTuple):
     nu: jax.Array
     S: jax.Array
     valid: jax.Array
+    dof: jax.Array
 
 
 class Filter(NamedTuple):
     init: Callable[[Any, Prior], Any]
     step: Callable[[Any, Any, Meas], tuple[Any, Out]]
     params: Any
+    # coast(params, state, meas) -> (state, out): the step when no measurement is present
+    # (equal to ``step`` with an absent measurement, cheaper); optional
+    coast: Callable[[Any, Any, Meas], tuple[Any, Out]] | None = None
 
 
 class Gaussian(NamedTuple):
@@ -82,6 +87,21 @@ def kalman_update(x, P, nu, H, R):
     return x, symmetrise(P), S
 
 
+def masked_kalman_update(x, P, nu, H, R, used):
+    """Kalman update with only the ``used`` measurement components (a bool vector).
+
+    Unused rows of H and components of ν are zeroed and their R entries replaced
+    by an uncoupled unit variance, so they change neither the mean nor the
+    covariance: a partial measurement (one sensor of several reporting) is an
+    update with the components that are there.
+    """
+    H = jnp.where(used[:, None], H, 0.0)
+    nu = jnp.where(used, nu, 0.0)
+    R = jnp.where(used[:, None] & used[None, :], R, jnp.eye(R.shape[-1], dtype=R.dtype))
+    x, P, S = kalman_update(x, P, nu, H, R)
+    return x, P, nu, S
+
+
 def wrap_angle(a):
     """Wrap to (-π, π]."""
     return jnp.pi - jnp.mod(jnp.pi - a, 2.0 * jnp.pi)
@@ -101,6 +121,6 @@ def select(valid, a, b):
 
 
 def masked_meas(meas: Meas):
-    """Measurement with NaNs replaced by zeros, and its validity."""
-    valid = meas.valid & jnp.all(jnp.isfinite(meas.z))
-    return jnp.where(valid, meas.z, 0.0), valid
+    """Measurement with NaNs replaced by zeros, and which components are present."""
+    present = meas.valid & jnp.isfinite(meas.z)
+    return jnp.where(present, meas.z, 0.0), present

@@ -21,7 +21,7 @@ from tracklab.filters.core import (
     Filter,
     Gaussian,
     Out,
-    kalman_update,
+    masked_kalman_update,
     masked_meas,
     select,
     symmetrise,
@@ -34,25 +34,37 @@ from tracklab.sensors import CONVERSIONS
 def gaussian_filter(params, predict, update, report=None, init=None) -> Filter:
     """Assemble a Filter from predict/update halves.
 
-    predict(params, g) -> g⁻;  update(params, g⁻, z) -> (g⁺, ν, S);
+    predict(params, g) -> g⁻;  update(params, g⁻, z, present) -> (g⁺, ν, S, used)
+    where ``present`` flags the measurement components that are there (NaN
+    components, a missed detection or a sensor with no report, are absent) and
+    ``used`` the innovation components the update used;
     report(g) -> (x, P) in the reporting frame (identity by default);
     init(params, prior) -> g (the prior as a Gaussian by default).
-    A missed detection (``meas.valid`` False or NaN in z) keeps the prediction.
+    A step with no component used keeps the prediction.
     """
     report = report or (lambda g: (g.x, g.P))
     init = init or (lambda params, prior: Gaussian(jnp.asarray(prior.x), jnp.asarray(prior.P)))
 
     def step(params, g, meas):
-        z, valid = masked_meas(meas)
+        z, present = masked_meas(meas)
         pred = predict(params, g)
-        post, nu, S = update(params, pred, z)
+        post, nu, S, used = update(params, pred, z, present)
+        valid = jnp.any(used)
         post = select(valid, post, pred)
         x, P = report(post)
         x_pred, _ = report(pred)
-        nu = jnp.where(valid, nu, 0.0)
-        return post, Out(x=x, P=P, x_pred=x_pred, nu=nu, S=S, valid=valid)
+        dof = jnp.sum(used)
+        return post, Out(x=x, P=P, x_pred=x_pred, nu=jnp.where(used, nu, 0.0), S=S, valid=valid, dof=dof)
 
-    return Filter(init=init, step=step, params=params)
+    def coast(params, g, meas):
+        pred = predict(params, g)
+        x, P = report(pred)
+        _, nu, S, used = jax.eval_shape(update, params, pred, *masked_meas(meas))
+        none = jnp.zeros(used.shape, bool)
+        return pred, Out(x=x, P=P, x_pred=x, nu=jnp.zeros(nu.shape, nu.dtype), S=jnp.eye(S.shape[-1], dtype=S.dtype),
+                         valid=jnp.any(none), dof=jnp.sum(none))
+
+    return Filter(init=init, step=step, params=params, coast=coast)
 
 
 def _linear_predict(F, Q, g):
@@ -69,10 +81,10 @@ def kf(F, H, Q, R) -> Filter:
     def predict(p, g):
         return _linear_predict(p["F"], p["Q"], g)
 
-    def update(p, g, z):
+    def update(p, g, z, present):
         nu = z - mm(p["H"], g.x)
-        x, P, S = kalman_update(g.x, g.P, nu, p["H"], p["R"])
-        return Gaussian(x, P), nu, S
+        x, P, nu, S = masked_kalman_update(g.x, g.P, nu, p["H"], p["R"], present)
+        return Gaussian(x, P), nu, S, present
 
     return gaussian_filter(params, predict, update)
 
@@ -89,11 +101,11 @@ def ekf(f, h, Q, R, *, angle_mask=None) -> Filter:
         F = jax.jacfwd(f)(g.x)
         return Gaussian(f(g.x), symmetrise(mm(mm(F, g.P), F.T) + p["Q"]))
 
-    def update(p, g, z):
+    def update(p, g, z, present):
         H = jax.jacfwd(h)(g.x)
         nu = wrap_components(z - h(g.x), angle_mask)
-        x, P, S = kalman_update(g.x, g.P, nu, H, p["R"])
-        return Gaussian(x, P), nu, S
+        x, P, nu, S = masked_kalman_update(g.x, g.P, nu, H, p["R"], present)
+        return Gaussian(x, P), nu, S, present
 
     return gaussian_filter(params, predict, update)
 
@@ -125,10 +137,10 @@ def model_kf(model, sensor, params) -> Filter:
     H[np.arange(sensor.m), np.array(model.pos_idx)] = 1.0
     H = jnp.asarray(H)
 
-    def update(p, g, z):
+    def update(p, g, z, present):
         nu = z - mm(H, g.x)
-        x, P, S = kalman_update(g.x, g.P, nu, H, jnp.diag(p["r"]))
-        return Gaussian(x, P), nu, S
+        x, P, nu, S = masked_kalman_update(g.x, g.P, nu, H, jnp.diag(p["r"]), present)
+        return Gaussian(x, P), nu, S, present
 
     return gaussian_filter(params, _model_predict(model), update)
 
@@ -137,11 +149,11 @@ def model_ekf(model, sensor, params) -> Filter:
     """EKF: H = ∂h/∂x at the prediction (paper 000 eq. 21)."""
     h = _h_state(model, sensor)
 
-    def update(p, g, z):
+    def update(p, g, z, present):
         H = jax.jacfwd(h)(g.x)
         nu = wrap_components(z - h(g.x), sensor.angle_mask)
-        x, P, S = kalman_update(g.x, g.P, nu, H, jnp.diag(p["r"]))
-        return Gaussian(x, P), nu, S
+        x, P, nu, S = masked_kalman_update(g.x, g.P, nu, H, jnp.diag(p["r"]), present)
+        return Gaussian(x, P), nu, S, present
 
     return gaussian_filter(params, _model_predict(model), update)
 
@@ -155,11 +167,11 @@ def model_cmkf(model, sensor, params, debias="plain") -> Filter:
     H[np.arange(model.dim), np.array(model.pos_idx)] = 1.0
     H = jnp.asarray(H)
 
-    def update(p, g, z):
+    def update(p, g, z, present):
         zc, Rc = convert(z, jnp.sqrt(p["r"]))
-        nu = zc - mm(H, g.x)
-        x, P, S = kalman_update(g.x, g.P, nu, H, Rc)
-        return Gaussian(x, P), nu, S
+        used = jnp.broadcast_to(jnp.all(present), (model.dim,))  # a conversion needs every component
+        x, P, nu, S = masked_kalman_update(g.x, g.P, zc - mm(H, g.x), H, Rc, used)
+        return Gaussian(x, P), nu, S, used
 
     return gaussian_filter(params, _model_predict(model), update)
 
@@ -168,7 +180,7 @@ def model_sequential_ekf(model, sensor, params) -> Filter:
     """Sequential EKF (paper 000 §4.2, eqs. 31–34).
 
     Scalar EKF updates in the order angle(s) then range, each re-linearised at
-    the estimate left by the previous one. The innovations are reported in the
+    the estimate left by the previous one; an absent component is skipped. The innovations are reported in the
     sensor's component order with S = diag of the scalar innovation variances,
     so NIS is their sum (χ² with m degrees of freedom).
     """
@@ -176,17 +188,17 @@ def model_sequential_ekf(model, sensor, params) -> Filter:
     m = sensor.m
     order = [i for i in range(m) if sensor.angle_mask[i]] + [i for i in range(m) if not sensor.angle_mask[i]]
 
-    def update(p, g, z):
+    def update(p, g, z, present):
         x, P = g.x, g.P
         nus, Ss = [None] * m, [None] * m
-        for i in order:  # static loop over measurement components (m ≤ 3)
+        for i in order:  # static loop over measurement components (m ≤ 5)
             hi = lambda s, i=i: h(s)[i]
             Hi = jax.grad(hi)(x)[None, :]
             nu_i = z[i] - hi(x)
             if sensor.angle_mask[i]:
                 nu_i = wrap_components(nu_i[None], (True,))[0]
-            x, P, S_i = kalman_update(x, P, nu_i[None], Hi, p["r"][i][None, None])
-            nus[i], Ss[i] = nu_i, S_i[0, 0]
-        return Gaussian(x, P), jnp.stack(nus), jnp.diag(jnp.stack(Ss))
+            x, P, nu_i, S_i = masked_kalman_update(x, P, nu_i[None], Hi, p["r"][i][None, None], present[i][None])
+            nus[i], Ss[i] = nu_i[0], S_i[0, 0]
+        return Gaussian(x, P), jnp.stack(nus), jnp.diag(jnp.stack(Ss)), present
 
     return gaussian_filter(params, _model_predict(model), update)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from tracklab.filters.core import Gaussian, Prior, kalman_update, symmetrise, wrap_angle
+from tracklab.filters.core import Gaussian, Prior, masked_kalman_update, symmetrise, wrap_angle
 from tracklab.filters.kalman import gaussian_filter
 from tracklab.linalg import mm
 
@@ -51,11 +51,11 @@ def model_polar_kf(dt, sensor, params):
         Q = Q.at[:2, :2].set(mm(Gr * q, Gr.T)).at[2:, 2:].set(mm(Gb * q, Gb.T))
         return Gaussian(mm(F, g.x), symmetrise(mm(mm(F, g.P), F.T) + Q))
 
-    def update(p, g, z):
+    def update(p, g, z, present):
         nu = z - mm(H, g.x)
         nu = nu.at[1].set(wrap_angle(nu[1]))
-        x, P, S = kalman_update(g.x, g.P, nu, H, jnp.diag(p["r"]))
-        return Gaussian(x, P), nu, S
+        x, P, nu, S = masked_kalman_update(g.x, g.P, nu, H, jnp.diag(p["r"]), present)
+        return Gaussian(x, P), nu, S, present
 
     def report(g):
         J = jax.jacfwd(polar_to_cartesian)(g.x)

@@ -1,11 +1,12 @@
 """Truth generators: ``simulate(key) -> (steps + 1, 2·dim)`` in CV layout."""
 
-from tracklab.scenarios.crossing import Crossing
+from tracklab.scenarios.constant_velocity import ConstantVelocity, Crossing
 from tracklab.scenarios.trajectory import Trajectory, TrajectoryError, read_csv
 
 SCENARIO_KINDS = {
-    "crossing": "straight crossing target, CV with white acceleration (paper 000)",
+    "crossing": "straight crossing pass, CV with white acceleration (paper 000)",
+    "constant_velocity": "CV with white acceleration from a given initial state, 1-3 D (paper 002 §3)",
     "trajectory": "truth from a CSV file with columns t,x,y,z (s, m)",
 }
 
-__all__ = ["SCENARIO_KINDS", "Crossing", "Trajectory", "TrajectoryError", "read_csv"]
+__all__ = ["SCENARIO_KINDS", "ConstantVelocity", "Crossing", "Trajectory", "TrajectoryError", "read_csv"]

@@ -1,6 +1,18 @@
-"""Sensors: measurement geometry, noise, detection, and converted measurements."""
+"""Sensors: measurement geometry, noise, timing, detection, converted measurements."""
 
 from tracklab.sensors.conversion import CONVERSIONS
-from tracklab.sensors.geometry import SENSOR_KINDS, Sensor, cartesian_h, polar_h, spherical_h
+from tracklab.sensors.geometry import (
+    SENSOR_KINDS,
+    Sensor,
+    SensorSuite,
+    angles_h,
+    cartesian_h,
+    epochs,
+    polar_h,
+    spherical_h,
+)
 
-__all__ = ["CONVERSIONS", "SENSOR_KINDS", "Sensor", "cartesian_h", "polar_h", "spherical_h"]
+__all__ = [
+    "CONVERSIONS", "SENSOR_KINDS", "Sensor", "SensorSuite", "angles_h", "cartesian_h", "epochs", "polar_h",
+    "spherical_h",
+]

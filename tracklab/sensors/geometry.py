@@ -1,13 +1,21 @@
-"""Measurement models of a sensor at the origin.
+"""Measurement models of sensors at the origin, their timing, and sensor suites.
 
-* ``polar`` (2-D): z = [r, β], r = √(x²+y²), β = atan2(y, x) (paper 000 eqs. 5–7).
-* ``spherical`` (3-D): z = [r, az, el], az = atan2(y, x), el = atan2(z, √(x²+y²))
-  (the convention of REFERENCE_MATH §4).
-* ``cartesian`` (2-D or 3-D): z = position + noise (the linear-Gaussian case).
+Kinds (z as a function of the position p):
+
+* ``polar`` (2-D): [r, β], r = √(x²+y²), β = atan2(y, x) (paper 000 eqs. 5–7).
+* ``spherical`` (3-D): [r, az, el], az = atan2(y, x), el = atan2(z, √(x²+y²))
+  (REFERENCE_MATH §4; paper 002's laser, eq. 13).
+* ``angles`` (3-D): [az, el] (paper 002's infrared sensor, eq. 11).
+* ``cartesian`` (1-, 2- or 3-D): the position itself (the linear-Gaussian case).
+
+Timing: a sensor reports at t = offset + j·period (j = 0, 1, …) on the
+experiment's grid of steps t_k = k·dt (k = 1 … steps); between reports its
+rows are NaN, which every filter treats as a predict-only step, as it treats a
+missed detection (probability 1 − ``p_detect``).
 
 A sensor holds the true noise; filters hold their own assumed R as parameters.
-Measurements are drawn with independent Gaussian noise per component; a missed
-detection (probability 1 − ``p_detect``) is a row of NaN.
+A ``SensorSuite`` stacks several sensors observing the same truth: its
+measurement is the concatenation of theirs (NaN where a sensor has no report).
 """
 
 from __future__ import annotations
@@ -30,16 +38,41 @@ def spherical_h(p):
     return jnp.stack([jnp.sqrt(rho**2 + z**2), jnp.arctan2(y, x), jnp.arctan2(z, rho)], axis=-1)
 
 
+def angles_h(p):
+    x, y, z = p[..., 0], p[..., 1], p[..., 2]
+    return jnp.stack([jnp.arctan2(y, x), jnp.arctan2(z, jnp.hypot(x, y))], axis=-1)
+
+
 def cartesian_h(p):
     return p
 
 
+_H = {"polar": polar_h, "spherical": spherical_h, "angles": angles_h, "cartesian": cartesian_h}
+_NAMES = {"polar": ("r", "angle"), "spherical": ("r", "az", "el"), "angles": ("az", "el")}
+_ANGLES = ("angle", "az", "el")
+
+
+def wrap(a):
+    return jnp.pi - jnp.mod(jnp.pi - a, 2.0 * jnp.pi)
+
+
+def epochs(steps: int, dt: float, period: float, offset: float) -> np.ndarray:
+    """Boolean mask over steps k = 1 … steps: does a sensor report at t_k = k·dt?"""
+    t = dt * np.arange(1, steps + 1)
+    j = (t - offset) / period
+    return (t >= offset - 1e-9 * dt) & (np.abs(j - np.round(j)) < 1e-6)
+
+
 @dataclass(frozen=True)
 class Sensor:
-    kind: str  # "polar" | "spherical" | "cartesian"
+    kind: str  # "polar" | "spherical" | "angles" | "cartesian"
     dim: int  # spatial dimension of the positions it observes
     sigma: tuple[float, ...]  # true noise std per measurement component
     p_detect: float = 1.0
+    name: str = ""
+    dt: float = 0.0  # the experiment's step; with period/offset, sets the report epochs
+    period: float = 0.0  # 0: every step
+    offset: float = 0.0
 
     @property
     def m(self) -> int:
@@ -47,55 +80,109 @@ class Sensor:
 
     @property
     def names(self) -> tuple[str, ...]:
-        return {
-            "polar": ("r", "angle"),
-            "spherical": ("r", "az", "el"),
-            "cartesian": ("x", "y", "z")[: self.dim],
-        }[self.kind]
+        return _NAMES.get(self.kind) or ("x", "y", "z")[: self.dim]
 
     @property
     def angle_mask(self) -> tuple[bool, ...]:
-        return tuple(n in ("angle", "az", "el") for n in self.names)
+        return tuple(n in _ANGLES for n in self.names)
 
     @property
-    def range_index(self) -> int | None:
-        return 0 if self.kind in ("polar", "spherical") else None
-
-    @property
-    def linear(self) -> bool:
-        return self.kind == "cartesian"
+    def sensors(self) -> tuple["Sensor", ...]:
+        return (self,)
 
     def h(self, p):
         """Noise-free measurement of positions ``p`` (..., dim)."""
-        return {"polar": polar_h, "spherical": spherical_h, "cartesian": cartesian_h}[self.kind](p)
+        return _H[self.kind](p)
 
-    def R(self):
-        return np.diag(np.square(self.sigma))
+    def report_mask(self, steps: int) -> np.ndarray:
+        if self.period <= 0:
+            return np.ones(steps, bool)
+        return epochs(steps, self.dt, self.period, self.offset)
 
     def measure(self, key, pos):
         """Noisy measurements of a position sequence ``pos`` (T, dim) -> (T, m)."""
         k_noise, k_det = jax.random.split(key)
         noise = jax.random.normal(k_noise, pos.shape[:-1] + (self.m,), pos.dtype)
         z = self.h(pos) + noise * jnp.asarray(self.sigma, pos.dtype)
-        if self.kind != "cartesian":
-            z = z.at[..., 1].set(_wrap(z[..., 1]))
+        if any(self.angle_mask):
+            z = jnp.where(jnp.asarray(self.angle_mask), wrap(z), z)
+        present = jnp.asarray(self.report_mask(pos.shape[-2]))
         if self.p_detect < 1.0:
-            hit = jax.random.uniform(k_det, pos.shape[:-1]) < self.p_detect
-            z = jnp.where(hit[..., None], z, jnp.nan)
-        return z
+            present = present & (jax.random.uniform(k_det, pos.shape[:-1]) < self.p_detect)
+        return jnp.where(present[..., None], z, jnp.nan)
 
-    def position_information(self, p):
-        """Fisher information of one measurement about the position: Hᵀ R⁻¹ H, (dim, dim)."""
+    def information(self, p):
+        """Expected Fisher information of one report about the position: Pd·Hᵀ R⁻¹ H."""
         H = jax.jacfwd(self.h)(p)
         return self.p_detect * (H.T / jnp.asarray(np.square(self.sigma), p.dtype)) @ H
 
 
-def _wrap(a):
-    return jnp.pi - jnp.mod(jnp.pi - a, 2.0 * jnp.pi)
+@dataclass(frozen=True)
+class SensorSuite:
+    """Several sensors observing the same truth; z is their concatenation."""
+
+    sensors: tuple[Sensor, ...]
+
+    @property
+    def kind(self) -> str:
+        return "suite" if len(self.sensors) > 1 else self.sensors[0].kind
+
+    @property
+    def dim(self) -> int:
+        return self.sensors[0].dim
+
+    @property
+    def m(self) -> int:
+        return sum(s.m for s in self.sensors)
+
+    @property
+    def sigma(self) -> tuple[float, ...]:
+        return sum((s.sigma for s in self.sensors), ())
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return sum((s.names for s in self.sensors), ())
+
+    @property
+    def angle_mask(self) -> tuple[bool, ...]:
+        return sum((s.angle_mask for s in self.sensors), ())
+
+    @property
+    def p_detect(self) -> float:
+        return min(s.p_detect for s in self.sensors)
+
+    def columns(self, names) -> np.ndarray:
+        """Column indices of the named sensors in the suite's z."""
+        cols, start = {}, 0
+        for s in self.sensors:
+            cols[s.name] = np.arange(start, start + s.m)
+            start += s.m
+        return np.concatenate([cols[n] for n in names])
+
+    def subset(self, names) -> "SensorSuite":
+        by = {s.name: s for s in self.sensors}
+        return SensorSuite(tuple(by[n] for n in names))
+
+    def h(self, p):
+        return jnp.concatenate([s.h(p) for s in self.sensors], axis=-1)
+
+    def measure(self, key, pos):
+        keys = jax.random.split(key, len(self.sensors))
+        return jnp.concatenate([s.measure(k, pos) for s, k in zip(self.sensors, keys)], axis=-1)
+
+    def information(self, pos):
+        """Per-step expected position information (T, dim, dim), only at report epochs."""
+        T = pos.shape[0]
+        total = 0.0
+        for s in self.sensors:
+            info = jax.vmap(s.information)(pos)
+            total = total + jnp.asarray(s.report_mask(T), pos.dtype)[:, None, None] * info
+        return total
 
 
 SENSOR_KINDS = {
     "polar": "2-D range and angle: sigma_r (m), sigma_angle (rad)",
-    "spherical": "3-D range, azimuth, elevation: sigma_r (m), sigma_az, sigma_el (rad)",
-    "cartesian": "2-D/3-D position: sigma (m), one value or one per axis",
+    "spherical": "3-D range, azimuth, elevation (laser): sigma_r (m), sigma_az, sigma_el (rad)",
+    "angles": "3-D azimuth and elevation (infrared): sigma_az, sigma_el (rad)",
+    "cartesian": "1-/2-/3-D position: sigma (m), one value or one per axis",
 }
