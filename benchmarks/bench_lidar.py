@@ -64,8 +64,9 @@ def _pass(fn, params_list, key, chunks, labels, steps, dim):
         t0 = time.perf_counter()
         out = jax.device_get(jax.block_until_ready(fn(params_list, key, idx, live)))
         info += out.pop("_info")
-        out.pop("_live")
+        out.pop("_example")
         for lab, s in out.items():
+            s.pop("example_x")
             acc[lab].add(s)
         times.append(time.perf_counter() - t0)
     return times, acc

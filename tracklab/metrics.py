@@ -58,10 +58,15 @@ def per_step(sums, dim):
     msep = _div(sums["sumsq_pos"], c[:, None])
     msev = _div(sums["sumsq_vel"], c[:, None])
     bias = _div(sums["sum_pos"], c[:, None])
+    bias_v = _div(sums["sum_vel"], c[:, None])
     for a in range(dim):
-        s[f"rmse_{AXES[a]}"] = np.sqrt(msep[:, a])
-        s[f"mean_err_{AXES[a]}"] = bias[:, a]
-        s[f"max_abs_err_{AXES[a]}"] = np.where(c > 0, sums["max_abs_pos"][:, a], np.nan)
+        ax = AXES[a]
+        s[f"rmse_{ax}"] = np.sqrt(msep[:, a])
+        s[f"mean_err_{ax}"] = bias[:, a]
+        s[f"max_abs_err_{ax}"] = np.where(c > 0, sums["max_abs_pos"][:, a], np.nan)
+        s[f"rmse_v{ax}"] = np.sqrt(msev[:, a])
+        s[f"mean_err_v{ax}"] = bias_v[:, a]
+        s[f"max_abs_err_v{ax}"] = np.where(c > 0, sums["max_abs_vel"][:, a], np.nan)
     s["mse_pos"] = msep.sum(-1)
     s["mse_vel"] = msev.sum(-1)
     s["rmse_pos"] = np.sqrt(s["mse_pos"])
@@ -96,6 +101,7 @@ def summarise(series, window, pcrlb_pos=None, diverged=0.0, runs=0):
         if f"rmse_{ax}" in series:
             out[f"rmse_{ax}"] = float(np.sqrt(np.mean(np.square(series[f"rmse_{ax}"][w]))))
             out[f"mean_err_{ax}"] = float(np.mean(series[f"mean_err_{ax}"][w]))
+            out[f"mean_err_v{ax}"] = float(np.mean(series[f"mean_err_v{ax}"][w]))
     out["max_err_pos"] = float(np.max(series["max_err_pos"][w]))
     out["max_err_vel"] = float(np.max(series["max_err_vel"][w]))
     out["nees"] = float(np.mean(series["nees"][w]))

@@ -79,7 +79,7 @@ def csv_table(stats) -> str:
 def _json_num(v):
     if isinstance(v, (np.floating, float)):
         v = float(v)
-        return v if math.isfinite(v) else None
+        return float(f"{v:.10g}") if math.isfinite(v) else None  # 10 significant digits
     if isinstance(v, (np.integer,)):
         return int(v)
     return v
@@ -95,10 +95,30 @@ def _jsonable(obj):
     return _json_num(obj)
 
 
+MAX_SERIES_POINTS = 2000  # longer runs are stored (and drawn) every `stride` steps
+
+
+def series_stride(steps):
+    return max(1, -(-steps // MAX_SERIES_POINTS))
+
+
+def _decimate(tree, stride):
+    if stride == 1:
+        return tree
+    if isinstance(tree, dict):
+        return {k: _decimate(v, stride) for k, v in tree.items()}
+    return np.asarray(tree)[stride - 1::stride]
+
+
 def stats_document(exp, res):
     from tracklab import __version__
 
     st = statistics(res, exp.window)
+    stride = series_stride(res.steps)
+    st = {
+        "bounds": _decimate(st["bounds"], stride),
+        "filters": {k: dict(f, series=_decimate(f["series"], stride)) for k, f in st["filters"].items()},
+    }
     return {
         "name": exp.name,
         "tracklab_version": __version__,
@@ -106,11 +126,12 @@ def stats_document(exp, res):
         "steps": res.steps,
         "dt": res.dt,
         "window": list(exp.window),
+        "series_stride": stride,  # series hold steps stride, 2·stride, … (summaries use every step)
         "wall_s": res.wall_s,
         "compile_s": res.compile_s,
         "experiment": exp.raw,
         "bounds": st["bounds"],
-        "example_run": _example(exp, res),
+        "example_run": _decimate(_example(exp, res), stride),
         "filters": {
             label: {"kind": f["kind"], "label": label, "summary": f["summary"], "series": f["series"]}
             for label, f in st["filters"].items()
@@ -150,7 +171,7 @@ def write_results(exp, res, out=None, figures=True):
         shutil.rmtree(tmp)
     try:
         tmp.mkdir()
-        (tmp / "stats.json").write_text(json.dumps(_jsonable(doc), indent=1, allow_nan=False) + "\n")
+        (tmp / "stats.json").write_text(json.dumps(_jsonable(doc), separators=(",", ":"), allow_nan=False) + "\n")
         (tmp / "table.md").write_text(markdown_table(doc))
         (tmp / "table.csv").write_text(csv_table(doc))
         if figures:
@@ -174,8 +195,8 @@ def plot_figures(doc, folder: Path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    dt = doc["dt"]
-    t = dt * np.arange(1, doc["steps"] + 1)
+    dt, stride = doc["dt"], doc.get("series_stride", 1)
+    t = dt * np.arange(stride, doc["steps"] + 1, stride)
     filters = doc["filters"]
     bounds = doc["bounds"]
     dim = sum(1 for a in AXES if f"rmse_{a}" in next(iter(filters.values()))["series"])
