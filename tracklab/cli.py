@@ -75,6 +75,46 @@ def cmd_list(args) -> int:
     return 0
 
 
+def cmd_tune(args) -> int:
+    import math
+
+    from tracklab.config import dump_toml, load_experiment
+    from tracklab.tune import LOSSES, TUNABLE, tune, tuned_document
+
+    exp = load_experiment(args.experiment)
+    names = [n.strip() for n in args.params.split(",") if n.strip()]
+    bad = [n for n in names if n not in TUNABLE]
+    if not names or bad:
+        raise ConfigError(args.experiment, "--params", args.params, f"must name parameters among {', '.join(TUNABLE)}")
+    if args.loss not in LOSSES:
+        raise ConfigError(args.experiment, "--loss", args.loss, f"must be one of {', '.join(LOSSES)}")
+    if not (args.lr > 0 and math.isfinite(args.lr)):
+        raise ConfigError(args.experiment, "--lr", args.lr, "must be a finite number > 0")
+    labels = [l.strip() for l in args.filters.split(",")] if args.filters else None
+    from tracklab.tune import selection
+
+    if not selection(exp, names, labels):
+        raise ConfigError(args.experiment, "--params", args.params, "no selected filter has any of these parameters")
+    out = Path(args.out) if args.out else Path(args.experiment).with_name(Path(args.experiment).stem + "_tuned.toml")
+
+    def progress(k, loss, gnorm):
+        print(f"step {k:5d}  loss {loss:.6g}  |grad| {gnorm:.3g}", flush=True)
+
+    res = tune(exp, names, steps=args.steps, lr=args.lr, loss=args.loss, runs_per_step=args.runs_per_step,
+               labels=labels, every=args.every, progress=progress)
+    if res.stopped:
+        print(f"warning: {res.stopped}; keeping the last finite parameters", file=sys.stderr)
+    for label, p in res.params.items():
+        print(f"{label}: " + ", ".join(f"{k} {res.initial[label][k]} -> {v}" for k, v in p.items()))
+    print(f"held-out {args.loss}: {res.eval_initial:.6g} -> {res.eval_tuned:.6g}")
+    doc = tuned_document(exp, res, out)
+    tmp = out.with_name(f".{out.name}.tmp")
+    tmp.write_text("# written by tracklab tune\n" + dump_toml(doc))
+    tmp.replace(out)
+    print(f"tuned experiment written to {out}")
+    return 0
+
+
 def build_parser():
     p = argparse.ArgumentParser(prog="tracklab", description="Monte-Carlo evaluation of tracking filters")
     sub = p.add_subparsers(dest="command", required=True)
@@ -85,6 +125,17 @@ def build_parser():
     r.add_argument("--out", help="results folder (default: results/<name>/)")
     r.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     r.set_defaults(func=cmd_run)
+    tu = sub.add_parser("tune", help="tune filter parameters by gradient descent through the Monte-Carlo runs")
+    tu.add_argument("experiment")
+    tu.add_argument("--params", required=True, help="comma-separated: q, r, alpha, beta, gamma, lam")
+    tu.add_argument("--steps", type=_positive_int, default=200)
+    tu.add_argument("--lr", type=float, default=0.05, help="Adam learning rate (unconstrained coordinates)")
+    tu.add_argument("--loss", default="mse_pos", help="mse_pos | pred_mse | nll")
+    tu.add_argument("--runs-per-step", type=_positive_int, default=None, help="fresh runs per step (default 256)")
+    tu.add_argument("--filters", default=None, help="comma-separated labels (default: every filter with the parameters)")
+    tu.add_argument("--every", type=_positive_int, default=10, help="progress line every N steps")
+    tu.add_argument("--out", help="tuned experiment file (default: FILE_tuned.toml beside FILE)")
+    tu.set_defaults(func=cmd_tune)
     ls = sub.add_parser("list", help="experiment files, filter kinds, sensors and scenarios")
     ls.add_argument("--dir", default="experiments", help="folder of experiment files")
     ls.set_defaults(func=cmd_list)

@@ -7,6 +7,7 @@ Relative paths are resolved against the experiment file's folder.
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import tomllib
@@ -288,6 +289,49 @@ def _build_sensors(f, parsed, dim, dt):
     return SensorSuite(tuple(sensors))
 
 
+def dump_toml(doc: dict) -> str:
+    """A TOML text for the shapes experiment files use (tables, arrays of tables, scalars, lists)."""
+
+    def value(v):
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, (int, np.integer)):
+            return str(int(v))
+        if isinstance(v, (float, np.floating)):
+            return repr(float(v))
+        if isinstance(v, str):
+            return json.dumps(v, ensure_ascii=False)
+        if isinstance(v, (list, tuple)):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+    def table(name, t, out):
+        scalars = {k: v for k, v in t.items() if not isinstance(v, dict) and not _is_table_list(v)}
+        out.append(f"[{name}]")
+        out += [f"{k} = {value(v)}" for k, v in scalars.items()]
+        out.append("")
+        for k, v in t.items():
+            if isinstance(v, dict):
+                table(f"{name}.{k}", v, out)
+
+    out = []
+    for k, v in doc.items():
+        if isinstance(v, dict):
+            table(k, v, out)
+        elif _is_table_list(v):
+            for item in v:
+                out.append(f"[[{k}]]")
+                out += [f"{kk} = {value(vv)}" for kk, vv in item.items()]
+                out.append("")
+        else:
+            out.insert(0, f"{k} = {value(v)}")
+    return "\n".join(out)
+
+
+def _is_table_list(v):
+    return isinstance(v, list) and bool(v) and all(isinstance(x, dict) for x in v)
+
+
 def load_experiment(path) -> Experiment:
     path = Path(path)
     raw = _read_toml(path)
@@ -491,7 +535,7 @@ def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q) -> Filter
                 raise ConfigError(f, f"filter[{i}].floor", floor, f"must be \"kalata\" or {order} gains [{', '.join(gnames)}] in [0, 4)")
         options["gains"] = gains
         if gains == "kalata" or options.get("floor") == "kalata":
-            lam = fs.number("tracking_index", None, positive=True)
+            lam = _sigma_list(f, f"filter[{i}].tracking_index", fs.get("tracking_index"), dim, required=False)
             if lam is None:
                 sw = fs.get("sigma_w")
                 if sw is None and mkind != "cartesian":
@@ -499,8 +543,8 @@ def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q) -> Filter
                 sigma_w = _sigma_list(f, f"filter[{i}].sigma_w", sw, dim) if sw is not None else tuple(np.sqrt(r))
                 T = getattr(meas, "period", 0.0) or dt  # the update interval
                 lam = tuple(sigma_v * T**2 / w for w in sigma_w)
-            else:
-                fs.get("sigma_w")
+            elif fs.has("sigma_w"):
+                raise ConfigError(f, f"filter[{i}].sigma_w", fs.get("sigma_w"), "give either tracking_index or sigma_w, not both")
             params["lam"] = lam
     fs.check_unknown()
     return FilterConfig(label, fkind, model, params, options, names if names != all_names else (), fusion)

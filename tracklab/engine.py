@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab.filters.core import Filter, Meas, Prior
-from tracklab.linalg import mahalanobis2
+from tracklab.linalg import mahalanobis2, mahalanobis2_logdet
 from tracklab.models import Kinematic
 from tracklab.sensors import SensorSuite
 
@@ -113,14 +113,17 @@ def _filter_chunk(spec: FilterSpec, params, truth, z, prior_cv, P0_cv, live, dt,
         e = out.x[:, pv] - truth_k  # (B, 2d) CV layout
         Pe = out.P[:, pv[:, None], pv[None, :]]
         nees = jax.vmap(mahalanobis2)(Pe, e)  # NaN when P is not positive definite
-        nis = jnp.where(out.valid, jax.vmap(mahalanobis2)(out.S, out.nu), 0.0)
+        nis, logdet_s = jax.vmap(mahalanobis2_logdet)(out.S, out.nu)
+        nis = jnp.where(out.valid, nis, 0.0)
+        logdet_s = jnp.where(out.valid, logdet_s, 0.0)
+        e_pred = out.x_pred[:, pv[0::2]] - truth_k[:, 0::2]  # one-step prediction error of the position
         bad = ~(jnp.isfinite(nees) & jnp.all(jnp.isfinite(out.x), axis=-1))
         bad = bad | (out.valid & ~jnp.isfinite(nis))
-        return state, (e, nees, nis, out.valid, out.dof, bad, out.x[0, pv])
+        return state, (e, nees, nis, out.valid, out.dof, bad, out.x[0, pv], logdet_s, jnp.sum(e_pred**2, axis=-1))
 
     zs = jnp.swapaxes(z, 0, 1)
     truths = jnp.swapaxes(truth[:, 1:], 0, 1)
-    _, (e, nees, nis, upd, dof, bad, x_first) = jax.lax.scan(body, state, (zs, truths, t))  # (T, B, ...)
+    _, (e, nees, nis, upd, dof, bad, x_first, logdet_s, se_pred) = jax.lax.scan(body, state, (zs, truths, t))
 
     diverged = jnp.any(bad, axis=0)  # (B,)
     ok = live & ~diverged
@@ -144,6 +147,8 @@ def _filter_chunk(spec: FilterSpec, params, truth, z, prior_cv, P0_cv, live, dt,
         "sum_nis": jnp.sum(jnp.where(ok[None, :], nis, 0.0) * updf, axis=1),
         "count_nis": jnp.sum(updf, axis=1),
         "dof_nis": jnp.sum(dof * updf, axis=1),
+        "sum_logdet_s": jnp.sum(jnp.where(ok[None, :], logdet_s, 0.0) * updf, axis=1),
+        "sumsq_pred_pos": jnp.sum(jnp.where(ok[None, :], se_pred, 0.0), axis=1),
         "example_x": x_first,  # the chunk's first run: estimates (T, 2d) in CV layout
     }
 

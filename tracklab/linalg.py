@@ -52,6 +52,13 @@ def mahalanobis2(A, v):
     return jnp.sum(y * y)
 
 
+def mahalanobis2_logdet(A, v):
+    """(vᵀ A⁻¹ v, log det A) for symmetric positive-definite A (NaN if A is not)."""
+    L = cholesky(A)
+    y = _forward(L, v)
+    return jnp.sum(y * y), 2.0 * jnp.sum(jnp.log(jnp.diagonal(L)))
+
+
 def spd_inverse(A):
     """Inverse of a small symmetric positive-definite matrix via its Cholesky factor."""
     n = A.shape[-1]

@@ -1,0 +1,192 @@
+"""Differentiable tuning: gradients through the Monte-Carlo simulation, and what tuning finds."""
+
+import subprocess
+import sys
+import textwrap
+import tomllib
+from pathlib import Path
+
+import jax
+import jax.flatten_util
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from tracklab.config import load_experiment
+from tracklab.filters import kalata_alpha_beta
+from tracklab.tune import objective, tune
+
+GRAD = """
+[experiment]
+name = "grad"
+runs = 64
+dt = 1.0
+steps = 40
+
+[scenario]
+kind = "constant_velocity"
+initial = [10.0, 88.0, 0.0, -20.0]
+accel_sigma = 3.0
+
+[sensor]
+kind = "cartesian"
+sigma = [100.0, 50.0]
+
+[[filter]]
+kind = "kf"
+label = "KF"
+accel_sigma = 2.0
+sigma = [80.0, 70.0]
+
+[[filter]]
+kind = "alpha_beta"
+label = "explicit"
+alpha = 0.3
+beta = 0.05
+accel_sigma = 3.0
+
+[[filter]]
+kind = "alpha_beta"
+label = "kalata"
+accel_sigma = 3.0
+
+[report]
+window = [5, 40]
+"""
+
+
+def write(tmp_path, text, name="exp.toml"):
+    p = tmp_path / name
+    p.write_text(textwrap.dedent(text))
+    return p
+
+
+@pytest.mark.parametrize("names,loss", [(["q", "r"], "mse_pos"), (["q", "r"], "nll"), (["q", "r"], "pred_mse"),
+                                        (["alpha", "beta"], "mse_pos"), (["lam"], "mse_pos")])
+def test_gradient_matches_central_differences(tmp_path, names, loss):
+    """d(loss)/d(theta) by autodiff through simulate -> filter -> statistics equals central differences."""
+    exp = load_experiment(write(tmp_path, GRAD))
+    obj = objective(exp, names, loss)
+    key, idx, live = jax.random.key(0), jnp.arange(64, dtype=jnp.uint32), jnp.ones(64, bool)
+    f = jax.jit(obj.loss)
+    g, _ = jax.flatten_util.ravel_pytree(jax.grad(obj.loss)(obj.theta0, key, idx, live))
+    flat, unravel = jax.flatten_util.ravel_pytree(obj.theta0)
+    checked = 0
+    for i in range(len(flat)):
+        e = jnp.zeros_like(flat).at[i].set(1e-5)
+        fd = (f(unravel(flat + e), key, idx, live) - f(unravel(flat - e), key, idx, live)) / 2e-5
+        if abs(float(fd)) < 1e-8 and abs(float(g[i])) < 1e-8:
+            continue  # a parameter this loss does not depend on (an alpha-beta filter's q in its MSE)
+        np.testing.assert_allclose(float(g[i]), float(fd), rtol=1e-4)
+        checked += 1
+    assert checked >= 1
+
+
+AB = """
+[experiment]
+name = "ab"
+runs = 512
+dt = 1.0
+steps = 120
+
+[scenario]
+kind = "constant_velocity"
+initial = [0.0, 10.0]
+accel_sigma = 10.0
+
+[sensor]
+kind = "cartesian"
+sigma = 10.0
+
+[prior]
+pos_sigma = 10.0
+vel_sigma = 10.0
+
+[[filter]]
+kind = "alpha_beta"
+label = "ab"
+alpha = ALPHA
+beta = BETA
+accel_sigma = 10.0
+
+[report]
+window = [40, 120]
+"""
+
+
+def test_tuned_alpha_beta_gains_reach_the_kalata_optimum(tmp_path):
+    """From gains 3x off, Adam on the position MSE lands on Kalata's gains for the true λ (= 1 here)."""
+    a, b = (float(v) for v in kalata_alpha_beta(1.0))
+    exp = load_experiment(write(tmp_path, AB.replace("ALPHA", str(a / 3)).replace("BETA", str(b * 3))))
+    res = tune(exp, ["alpha", "beta"], steps=150, lr=0.1, runs_per_step=512)
+    got = res.params["ab"]
+    assert abs(got["alpha"] / a - 1) < 0.02, (got, a, b)
+    assert abs(got["beta"] / b - 1) < 0.02, (got, a, b)
+    assert res.eval_tuned < res.eval_initial
+
+
+QR = """
+[experiment]
+name = "qr"
+runs = 256
+dt = 1.0
+steps = 100
+
+[scenario]
+kind = "constant_velocity"
+initial = [0.0, 10.0, 0.0, -5.0]
+accel_sigma = 3.0
+
+[sensor]
+kind = "cartesian"
+sigma = 20.0
+
+[prior]
+pos_sigma = 20.0
+vel_sigma = 5.0
+
+[[filter]]
+kind = "kf"
+label = "KF"
+accel_sigma = 1.0
+sigma = 60.0
+"""
+
+
+def test_tuned_kf_recovers_true_noise_from_innovations(tmp_path):
+    """Q 9x too small and R 9x too large: the innovation likelihood (no truth needed) recovers both within 10 %."""
+    exp = load_experiment(write(tmp_path, QR))
+    res = tune(exp, ["q", "r"], steps=120, lr=0.1, loss="nll", runs_per_step=256)
+    got = res.params["KF"]
+    assert abs(got["q"] / 9.0 - 1) < 0.10, got
+    assert np.all(np.abs(np.asarray(got["r"]) / 400.0 - 1) < 0.10), got
+
+
+def _cli(*args, cwd):
+    return subprocess.run([sys.executable, "-m", "tracklab.cli", *map(str, args)], cwd=cwd, capture_output=True, text=True)
+
+
+def test_cli_tune_writes_an_experiment_that_runs(tmp_path):
+    src = write(tmp_path, QR)
+    out = tmp_path / "tuned.toml"
+    proc = _cli("tune", src, "--params", "q,r", "--steps", 30, "--lr", 0.1, "--loss", "nll", "--out", out, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "step" in proc.stdout and "held-out nll" in proc.stdout
+    doc = tomllib.loads(out.read_text())
+    f = doc["filter"][0]
+    assert f["accel_sigma"] > 1.0 and all(s < 60.0 for s in f["sigma"])  # moved towards the truth (3, 20)
+    exp = load_experiment(out)  # a valid experiment file
+    assert exp.name == "qr_tuned"
+    run = _cli("run", out, "--runs", 20, "--no-figures", "--out", tmp_path / "res", cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+
+
+@pytest.mark.parametrize("args,field", [(("--params", "zeta"), "--params"), (("--params", "q", "--loss", "l1"), "--loss"),
+                                        (("--params", "alpha"), "--params")])
+def test_cli_tune_refuses_bad_requests(tmp_path, args, field):
+    src = write(tmp_path, QR)
+    proc = _cli("tune", src, *args, "--steps", 2, cwd=tmp_path)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:") and field in lines[0]
+    assert not (tmp_path / "exp_tuned.toml").exists()
