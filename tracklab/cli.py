@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from tracklab.errors import ConfigError
 
 
@@ -115,6 +117,38 @@ def cmd_tune(args) -> int:
     return 0
 
 
+def cmd_sweep(args) -> int:
+    from tracklab.config import MAX_RUNS, load_experiment
+    from tracklab.sweep import parse_grid, sweep, write_sweep
+
+    exp = load_experiment(args.experiment)
+    axes = []
+    for g in args.grid:
+        try:
+            axes.append(parse_grid(g))
+        except ValueError as e:
+            raise ConfigError(args.experiment, "--grid", g, str(e)) from None
+    if len({a.name for a in axes}) != len(axes):
+        raise ConfigError(args.experiment, "--grid", " ".join(args.grid), "each parameter may appear once")
+    if args.runs is not None and args.runs > MAX_RUNS:
+        raise ConfigError(args.experiment, "--runs", args.runs, f"must be <= {MAX_RUNS}")
+    out = Path(args.out) if args.out else Path("results") / f"{exp.name}_sweep"
+    if out.exists() and not out.is_dir():
+        raise ConfigError(args.experiment, "--out", str(out), "exists and is not a folder")
+
+    def progress(done, total):
+        if sys.stderr.isatty() or done == total:
+            print(f"\r{exp.name} sweep: {done}/{total} calls", end="\n" if done == total else "", file=sys.stderr, flush=True)
+
+    doc = sweep(exp, axes, runs=args.runs, progress=progress)
+    n = int(np.prod([len(a.values) for a in axes]))
+    print(f"# {exp.name}: {n} grid points x {doc['runs']} runs, {doc['wall_s']:.1f} s")
+    rows = write_sweep(exp, doc, out, figures=not args.no_figures)
+    print((out / "table.md").read_text(), end="")
+    print(f"sweep written to {out}/")
+    return 0
+
+
 def build_parser():
     p = argparse.ArgumentParser(prog="tracklab", description="Monte-Carlo evaluation of tracking filters")
     sub = p.add_subparsers(dest="command", required=True)
@@ -136,6 +170,13 @@ def build_parser():
     tu.add_argument("--every", type=_positive_int, default=10, help="progress line every N steps")
     tu.add_argument("--out", help="tuned experiment file (default: FILE_tuned.toml beside FILE)")
     tu.set_defaults(func=cmd_tune)
+    sw = sub.add_parser("sweep", help="evaluate every filter on a grid of parameter scale factors")
+    sw.add_argument("experiment")
+    sw.add_argument("--grid", action="append", required=True, help="NAME=LO:HI:N, log-spaced scale factors (q, r, lam, alpha, beta, gamma)")
+    sw.add_argument("--runs", type=_positive_int, help="Monte-Carlo runs per grid point (default: the file's)")
+    sw.add_argument("--out", help="folder (default: results/<name>_sweep/)")
+    sw.add_argument("--no-figures", action="store_true")
+    sw.set_defaults(func=cmd_sweep)
     ls = sub.add_parser("list", help="experiment files, filter kinds, sensors and scenarios")
     ls.add_argument("--dir", default="experiments", help="folder of experiment files")
     ls.set_defaults(func=cmd_list)

@@ -1,0 +1,81 @@
+"""Sweeps: one vmapped call over a grid of scale factors, equal to separate runs."""
+
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from tracklab.config import load_experiment
+from tracklab.metrics import statistics
+from tracklab.sweep import parse_grid, sweep
+
+EXP = """
+[experiment]
+name = "mismatch"
+runs = 96
+dt = 0.5
+steps = 40
+
+[scenario]
+kind = "crossing"
+
+[sensor]
+kind = "polar"
+sigma_r = 100.0
+sigma_angle = 0.003
+
+[[filter]]
+kind = "ekf"
+label = "EKF"
+
+[[filter]]
+kind = "cmkf"
+label = "CMKF"
+debias = "unbiased"
+
+[report]
+window = [5, 40]
+"""
+
+
+def test_sweep_point_equals_a_separate_run_with_scaled_parameters(tmp_path):
+    path = tmp_path / "exp.toml"
+    path.write_text(textwrap.dedent(EXP))
+    exp = load_experiment(path)
+    doc = sweep(exp, [parse_grid("q=0.01:100:3"), parse_grid("r=0.2:5:2")], chunk=40, block_points=4)
+    assert len(doc["points"]) == 6
+    for point in (doc["points"][0], doc["points"][5]):
+        f = point["factors"]
+        one = load_experiment(path)
+        for fc in one.filters:
+            fc.params["q"] = fc.params["q"] * f["q"]
+            fc.params["r"] = tuple(v * f["r"] for v in fc.params["r"])
+        st = statistics(one.monte_carlo(), one.window)
+        for label in ("EKF", "CMKF"):
+            a, b = point["stats"]["filters"][label]["summary"], st["filters"][label]["summary"]
+            for k in ("rmse_pos", "rmse_vel", "nees", "max_err_pos", "nis"):
+                np.testing.assert_allclose(a[k], b[k], rtol=1e-9, err_msg=f"{label} {k} at {f}")
+    # mismatch shows: Q 100x too small is over-confident, R 5x too large under-confident
+    nees = {tuple(p["factors"].values()): p["stats"]["filters"]["EKF"]["summary"]["nees"] for p in doc["points"]}
+    assert nees[(0.01, 0.2)] > 4.5 and nees[(100.0, 5.0)] < 3.0
+
+
+@pytest.mark.parametrize("spec", ["q=1:2", "zeta=1:2:3", "q=0:1:3", "q=2:1:3", "q=1:2:0"])
+def test_bad_grids_are_refused(spec):
+    with pytest.raises(ValueError):
+        parse_grid(spec)
+
+
+def test_cli_sweep(tmp_path):
+    path = tmp_path / "exp.toml"
+    path.write_text(textwrap.dedent(EXP))
+    proc = subprocess.run([sys.executable, "-m", "tracklab.cli", "sweep", str(path), "--grid", "q=0.1:10:2",
+                           "--runs", "16", "--out", str(tmp_path / "sw")], capture_output=True, text=True, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    for f in ("sweep.json", "table.md", "table.csv", "sweep_rmse_pos.png", "sweep_nees.png"):
+        assert (tmp_path / "sw" / f).exists(), f
+    bad = subprocess.run([sys.executable, "-m", "tracklab.cli", "sweep", str(path), "--grid", "q=1:2"],
+                         capture_output=True, text=True, cwd=tmp_path)
+    assert bad.returncode == 2 and bad.stderr.startswith("error:") and "--grid" in bad.stderr

@@ -1,0 +1,189 @@
+"""Parameter sweeps: a grid of scale factors evaluated in one vmapped call.
+
+``--grid q=0.01:100:9`` multiplies every filter's process-noise variance by 9
+log-spaced factors from 0.01 to 100 (``r`` likewise scales R): the noise-mismatch
+study of paper 001. Any numeric filter parameter (``q``, ``r``, ``lam``,
+``alpha``, ``beta``, ``gamma``) can be scaled. All grid points of a chunk of runs
+are one call, ``vmap``-ped over the grid; grid points and runs are processed in
+blocks so memory stays bounded. Run i uses the same random numbers at every grid
+point (common random numbers), so differences between points are the
+parameters', not the noise's.
+"""
+
+from __future__ import annotations
+
+import itertools
+import re
+import time
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from tracklab.engine import MonteCarloResult, Sums, make_chunk_fn
+from tracklab.metrics import statistics
+
+GRID_RE = re.compile(r"^([a-z_]+)=([^:]+):([^:]+):(\d+)$")
+SCALABLE = ("q", "r", "lam", "alpha", "beta", "gamma")
+
+
+@dataclass(frozen=True)
+class Axis:
+    name: str
+    values: np.ndarray  # scale factors
+
+
+def parse_grid(spec: str) -> Axis:
+    """NAME=LO:HI:N -> N log-spaced factors from LO to HI."""
+    m = GRID_RE.match(spec.strip())
+    if not m:
+        raise ValueError("must look like NAME=LO:HI:N, e.g. q=0.01:100:9")
+    name, lo, hi, n = m.group(1), float(m.group(2)), float(m.group(3)), int(m.group(4))
+    if name not in SCALABLE:
+        raise ValueError(f"NAME must be one of {', '.join(SCALABLE)}")
+    if not (0 < lo <= hi and np.isfinite(hi)) or not 1 <= n <= 1000:
+        raise ValueError("needs 0 < LO <= HI and 1 <= N <= 1000")
+    return Axis(name, np.geomspace(lo, hi, n))
+
+
+def scaled(params: dict, factors: dict) -> dict:
+    return {k: (v * factors[k] if k in factors else v) for k, v in params.items()}
+
+
+def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=None, progress=None):
+    """Statistics of every filter at every grid point: {"points": [...], "stats": [statistics, ...]}."""
+    specs = exp.filter_specs()
+    fn = make_chunk_fn(exp.scenario, exp.sensor, specs, exp.prior_covariance(), exp.dt)
+    base = [s.filter.params for s in specs]
+    runs = runs or exp.runs
+    key = jax.random.key(exp.seed if seed is None else seed)
+    points = list(itertools.product(*[a.values for a in axes]))
+    names = [a.name for a in axes]
+    P = len(points)
+    chunk = int(min(chunk or exp.chunk or 1000, runs))
+    block = int(block_points or max(1, min(P, 4000 // max(chunk, 1) or 1)))  # grid points per call
+
+    def point_params(f):
+        factors = dict(zip(names, f))
+        return [scaled(p, factors) for p in base]
+
+    def many(factors, key, idx, live):  # vmapped over the grid points of a block
+        return jax.vmap(lambda f: fn(point_params(f), key, idx, live))(factors)
+
+    many = jax.jit(many)
+    grid = jnp.asarray(np.array(points, float).reshape(P, len(axes)))
+    acc = [{s.label: Sums() for s in specs} for _ in range(P)]
+    info = [np.zeros((exp.steps, exp.dim, exp.dim)) for _ in range(P)]
+    t0 = time.perf_counter()
+    n_chunks = -(-runs // chunk)
+    for b0 in range(0, P, block):
+        fb = grid[b0:b0 + block]
+        pad = block - fb.shape[0]
+        if pad:
+            fb = jnp.concatenate([fb, jnp.repeat(fb[-1:], pad, axis=0)])
+        for c in range(n_chunks):
+            idx = np.arange(c * chunk, (c + 1) * chunk, dtype=np.uint32)
+            out = jax.device_get(many(fb, key, jnp.asarray(idx), jnp.asarray(idx < runs)))
+            for j in range(block - pad):
+                info[b0 + j] += out["_info"][j]
+                for s in specs:
+                    acc[b0 + j][s.label].add({k: v[j] for k, v in out[s.label].items() if k != "example_x"})
+            if progress:
+                progress((b0 // block) * n_chunks + c + 1, -(-P // block) * n_chunks)
+    wall = time.perf_counter() - t0
+
+    from tracklab.engine import _pcrlb
+
+    results = []
+    for j, f in enumerate(points):
+        res = MonteCarloResult(
+            runs=runs, steps=exp.steps, dt=exp.dt, dim=exp.dim,
+            sums={l: a.data for l, a in acc[j].items()},
+            pcrlb=_pcrlb(exp.scenario, exp.prior_covariance(), info[j] / runs),
+            wall_s=wall, compile_s=0.0, labels=[s.label for s in specs], kinds={s.label: s.kind for s in specs},
+        )
+        results.append({"factors": dict(zip(names, map(float, f))), "stats": statistics(res, exp.window)})
+    return {"axes": {a.name: a.values.tolist() for a in axes}, "points": results, "wall_s": wall, "runs": runs}
+
+
+def write_sweep(exp, doc, out, figures=True):
+    """sweep.json, table.md, table.csv and heatmaps (1-D: curves) of RMSE and NEES per filter."""
+    import csv
+    import io
+    import json
+    import os
+    import shutil
+    from pathlib import Path
+
+    from tracklab.report import _jsonable
+
+    out = Path(out)
+    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    names = list(doc["axes"])
+    labels = list(doc["points"][0]["stats"]["filters"])
+    rows = []
+    for p in doc["points"]:
+        for l in labels:
+            s = p["stats"]["filters"][l]["summary"]
+            rows.append([*(p["factors"][n] for n in names), l, s["rmse_pos"], s["rmse_vel"], s["nees"],
+                         s["nees_in_bounds"], s["diverged"]])
+    header = [*(f"{n} x" for n in names), "filter", "rmse_pos", "rmse_vel", "nees", "nees_in_bounds", "diverged"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * len(header)) + "|"]
+    for r in rows:
+        cells = [f"{v:.4g}" for v in r[:len(names)]] + [r[len(names)]] + [f"{v:.4g}" for v in r[len(names) + 1:-1]] + [str(int(r[-1]))]
+        lines.append("| " + " | ".join(cells) + " |")
+    (tmp / "table.md").write_text("\n".join(lines) + "\n")
+    buf = io.StringIO()
+    csv.writer(buf).writerows([header, *rows])
+    (tmp / "table.csv").write_text(buf.getvalue())
+    summary_only = {
+        "name": exp.name, "runs": doc["runs"], "window": list(exp.window), "axes": doc["axes"], "wall_s": doc["wall_s"],
+        "points": [{"factors": p["factors"], "filters": {l: {"kind": f["kind"], "summary": f["summary"]}
+                                                           for l, f in p["stats"]["filters"].items()}}
+                   for p in doc["points"]],
+        "experiment": exp.raw,
+    }
+    (tmp / "sweep.json").write_text(json.dumps(_jsonable(summary_only), separators=(",", ":"), allow_nan=False) + "\n")
+    if figures and len(names) <= 2:
+        _plot(doc, names, labels, tmp)
+    old = None
+    if out.exists():
+        old = out.parent / f".{out.name}.old-{os.getpid()}"
+        out.rename(old)
+    tmp.rename(out)
+    if old is not None:
+        shutil.rmtree(old)
+    return rows
+
+
+def _plot(doc, names, labels, folder):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    axes_vals = [np.asarray(doc["axes"][n]) for n in names]
+    for metric, title in (("rmse_pos", "time-averaged position RMSE (m)"), ("nees", "average NEES")):
+        fig, axs = plt.subplots(1, len(labels), figsize=(4.2 * len(labels), 3.6), squeeze=False)
+        for ax, l in zip(axs[0], labels):
+            vals = np.array([p["stats"]["filters"][l]["summary"][metric] for p in doc["points"]], float)
+            if len(names) == 1:
+                ax.loglog(axes_vals[0], vals, "o-")
+                ax.set_xlabel(f"{names[0]} scale factor")
+                ax.grid(True, which="both", alpha=0.3)
+            else:
+                grid = vals.reshape(len(axes_vals[0]), len(axes_vals[1]))
+                im = ax.pcolormesh(axes_vals[1], axes_vals[0], np.log10(grid), shading="nearest")
+                ax.set_xscale("log")
+                ax.set_yscale("log")
+                ax.set_xlabel(f"{names[1]} scale factor")
+                ax.set_ylabel(f"{names[0]} scale factor")
+                fig.colorbar(im, ax=ax, label=f"log10 {metric}")
+            ax.set_title(l, fontsize=9)
+        fig.suptitle(title)
+        fig.tight_layout()
+        fig.savefig(folder / f"sweep_{metric}.png", dpi=110)
+        plt.close(fig)
