@@ -149,6 +149,33 @@ def cmd_sweep(args) -> int:
     return 0
 
 
+def cmd_table(args) -> int:
+    from tracklab.reproduce import METRICS, combined_table, read_stats
+
+    metrics = tuple(m.strip() for m in args.metrics.split(",")) if args.metrics else tuple(METRICS)
+    bad = [m for m in metrics if m not in METRICS]
+    if bad:
+        raise ConfigError("tracklab table", "--metrics", ",".join(bad), f"must be among {', '.join(METRICS)}")
+    for d in args.results:
+        try:
+            read_stats(d)
+        except (FileNotFoundError, ValueError) as e:
+            raise ConfigError(d, "stats.json", str(Path(d) / "stats.json"), f"cannot be read ({e.__class__.__name__})") from None
+    print(combined_table(args.results, args.format, metrics), end="")
+    return 0
+
+
+def cmd_reproduce(args) -> int:
+    import tempfile
+
+    from tracklab.reproduce import reproduce
+
+    out = args.out or (tempfile.mkdtemp(prefix="tracklab-quick-") if args.quick else "results")
+    folders = reproduce(args.experiments, out, quick=args.quick)
+    print(f"{len(folders)} results folders and {Path(out) / 'README.md'} (combined table) rebuilt")
+    return 0
+
+
 def build_parser():
     p = argparse.ArgumentParser(prog="tracklab", description="Monte-Carlo evaluation of tracking filters")
     sub = p.add_subparsers(dest="command", required=True)
@@ -177,6 +204,16 @@ def build_parser():
     sw.add_argument("--out", help="folder (default: results/<name>_sweep/)")
     sw.add_argument("--no-figures", action="store_true")
     sw.set_defaults(func=cmd_sweep)
+    tb = sub.add_parser("table", help="one error-statistics table from several results folders")
+    tb.add_argument("results", nargs="+")
+    tb.add_argument("--format", choices=("md", "csv", "latex"), default="md")
+    tb.add_argument("--metrics", help="comma-separated summary keys (default: all)")
+    tb.set_defaults(func=cmd_table)
+    rp = sub.add_parser("reproduce", help="run every experiment and rebuild results/")
+    rp.add_argument("--quick", action="store_true", help="20 runs each, into a temporary folder (a smoke check)")
+    rp.add_argument("--experiments", default="experiments")
+    rp.add_argument("--out", help="results folder (default results/, or a temporary one with --quick)")
+    rp.set_defaults(func=cmd_reproduce)
     ls = sub.add_parser("list", help="experiment files, filter kinds, sensors and scenarios")
     ls.add_argument("--dir", default="experiments", help="folder of experiment files")
     ls.set_defaults(func=cmd_list)

@@ -143,6 +143,7 @@ class Experiment:
     prior: dict[str, float]
     window: tuple[int, int]
     raw: dict
+    also_runs: tuple[int, ...] = ()
 
     @property
     def dim(self) -> int:
@@ -357,6 +358,9 @@ def load_experiment(path) -> Experiment:
         raise ConfigError(f, "experiment.runs", runs, f"runs x steps must be <= {MAX_RUN_STEPS:.0e}")
     chunk = ex.integer("chunk", None, lo=1, hi=1_000_000)
     ex.get("description")
+    also = ex.get("also_runs", [])  # extra run counts `tracklab reproduce` writes, e.g. a paper's own
+    if not isinstance(also, list) or any(isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= MAX_RUNS for v in also):
+        raise ConfigError(f, "experiment.also_runs", also, f"must be a list of run counts in [1, {MAX_RUNS}]")
     ex.check_unknown()
 
     parsed_sensors = _parse_sensors(f, raw, dt, steps)
@@ -439,7 +443,7 @@ def load_experiment(path) -> Experiment:
 
     return Experiment(
         path=path, name=name, runs=runs, seed=seed, dt=dt, steps=steps, chunk=chunk, scenario=scenario,
-        sensor=suite, filters=filters, prior=prior, window=(w[0], w[1]), raw=raw,
+        sensor=suite, filters=filters, prior=prior, window=(w[0], w[1]), raw=raw, also_runs=tuple(also),
     )
 
 

@@ -1,0 +1,71 @@
+"""tracklab reproduce and tracklab table."""
+
+import subprocess
+import sys
+import textwrap
+
+from tracklab.reproduce import BEGIN, END, combined_table, reproduce
+
+SMALL = """
+[experiment]
+name = "NAME"
+runs = 12
+ALSO
+dt = 1.0
+steps = 15
+
+[scenario]
+kind = "constant_velocity"
+initial = [0.0, 10.0]
+accel_sigma = 1.0
+
+[sensor]
+kind = "cartesian"
+sigma = 5.0
+
+[[filter]]
+kind = "kf"
+label = "KF"
+
+[[filter]]
+kind = "alpha_beta"
+label = "AB"
+"""
+
+
+def _experiments(tmp_path):
+    d = tmp_path / "experiments"
+    d.mkdir()
+    (d / "a.toml").write_text(textwrap.dedent(SMALL.replace("NAME", "a").replace("ALSO", "also_runs = [5]")))
+    (d / "b.toml").write_text(textwrap.dedent(SMALL.replace("NAME", "b").replace("ALSO", "")))
+    return d
+
+
+def test_reproduce_runs_everything_and_rebuilds_the_combined_table(tmp_path):
+    d = _experiments(tmp_path)
+    res = tmp_path / "results"
+    res.mkdir()
+    (res / "README.md").write_text(f"# Results\n\nprose stays\n\n{BEGIN}\nold\n{END}\n\nmore prose\n")
+    folders = reproduce(d, res, log=lambda *a: None)
+    assert [f.name for f in folders] == ["a", "b", "a_5runs"]
+    for f in folders:
+        assert (f / "stats.json").exists() and (f / "rmse.png").exists()
+    text = (res / "README.md").read_text()
+    assert "prose stays" in text and "more prose" in text and "old" not in text
+    assert text.count(BEGIN) == 1 and "| a | KF |" in text and "| a_5runs | KF |" in text  # rows named by folder
+    reproduce(d, res, log=lambda *a: None)  # again: the block is replaced, not appended
+    assert (res / "README.md").read_text().count(BEGIN) == 1
+
+
+def test_table_formats(tmp_path):
+    d = _experiments(tmp_path)
+    folders = reproduce(d, tmp_path / "r", quick=True, log=lambda *a: None)
+    md = combined_table(folders, "md", ("rmse_pos", "runs"))
+    assert md.splitlines()[0] == "| results | filter | RMSE pos (m) | runs |" and len(md.splitlines()) == 2 + 4
+    csv = combined_table(folders, "csv", ("rmse_pos",))
+    assert csv.splitlines()[0] == "results,filter,rmse_pos"
+    tex = combined_table(folders, "latex", ("nees_in_bounds",))
+    assert tex.startswith("\\begin{tabular}") and "\\%" in tex
+    proc = subprocess.run([sys.executable, "-m", "tracklab.cli", "table", *map(str, folders), "--metrics", "nope"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and proc.stderr.startswith("error:") and "--metrics" in proc.stderr
