@@ -202,6 +202,7 @@ def tuned_document(exp, result: TuneResult, out_path) -> dict:
         tuned = result.params.get(fc.label)
         if not tuned:
             continue
+        table["label"] = f"{fc.label}, tuned"
         if "q" in tuned:
             key = "accel_sigma" if fc.model == "cv" else "accel_increment_sigma"
             table[key] = math.sqrt(float(tuned["q"]))
