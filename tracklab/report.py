@@ -7,6 +7,7 @@ previous results untouched.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
@@ -161,21 +162,15 @@ def _example(exp, res):
     return doc
 
 
-def write_results(exp, res, out=None, figures=True):
-    """Write DIR (default results/<name>/) atomically; return the stats document."""
-    doc = stats_document(exp, res)
-    out = results_folder(exp, out)
+@contextlib.contextmanager
+def atomic_folder(out: Path):
+    """Yield a temporary folder beside ``out`` that replaces it only if the block completes."""
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
+    shutil.rmtree(tmp, ignore_errors=True)
     try:
         tmp.mkdir()
-        (tmp / "stats.json").write_text(json.dumps(_jsonable(doc), separators=(",", ":"), allow_nan=False) + "\n")
-        (tmp / "table.md").write_text(markdown_table(doc))
-        (tmp / "table.csv").write_text(csv_table(doc))
-        if figures:
-            plot_figures(doc, tmp)
+        yield tmp
         old = None
         if out.exists():
             old = out.parent / f".{out.name}.old-{os.getpid()}"
@@ -186,6 +181,17 @@ def write_results(exp, res, out=None, figures=True):
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def write_results(exp, res, out=None, figures=True):
+    """Write DIR (default results/<name>/) atomically; return the stats document."""
+    doc = stats_document(exp, res)
+    with atomic_folder(results_folder(exp, out)) as tmp:
+        (tmp / "stats.json").write_text(json.dumps(_jsonable(doc), separators=(",", ":"), allow_nan=False) + "\n")
+        (tmp / "table.md").write_text(markdown_table(doc))
+        (tmp / "table.csv").write_text(csv_table(doc))
+        if figures:
+            plot_figures(doc, tmp)
     return doc
 
 

@@ -12,10 +12,14 @@ parameters', not the noise's.
 
 from __future__ import annotations
 
+import csv
+import io
 import itertools
+import json
 import re
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -23,6 +27,7 @@ import numpy as np
 
 from tracklab.engine import MonteCarloResult, Sums, make_chunk_fn
 from tracklab.metrics import statistics
+from tracklab.report import _jsonable, atomic_folder
 
 GRID_RE = re.compile(r"^([a-z_]+)=([^:]+):([^:]+):(\d+)$")
 SCALABLE = ("q", "r", "lam", "alpha", "beta", "gamma")
@@ -109,19 +114,11 @@ def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=
 
 def write_sweep(exp, doc, out, figures=True):
     """sweep.json, table.md, table.csv and heatmaps (1-D: curves) of RMSE and NEES per filter."""
-    import csv
-    import io
-    import json
-    import os
-    import shutil
-    from pathlib import Path
+    with atomic_folder(Path(out)) as tmp:
+        return _write_sweep(exp, doc, tmp, figures)
 
-    from tracklab.report import _jsonable
 
-    out = Path(out)
-    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
+def _write_sweep(exp, doc, tmp, figures):
     names = list(doc["axes"])
     labels = list(doc["points"][0]["stats"]["filters"])
     rows = []
@@ -149,13 +146,6 @@ def write_sweep(exp, doc, out, figures=True):
     (tmp / "sweep.json").write_text(json.dumps(_jsonable(summary_only), separators=(",", ":"), allow_nan=False) + "\n")
     if figures and len(names) <= 2:
         _plot(doc, names, labels, tmp)
-    old = None
-    if out.exists():
-        old = out.parent / f".{out.name}.old-{os.getpid()}"
-        out.rename(old)
-    tmp.rename(out)
-    if old is not None:
-        shutil.rmtree(old)
     return rows
 
 
