@@ -218,7 +218,7 @@ def _bad(text=None, csv=None, args=()):
 
 
 BAD = [
-    pytest.param(_bad(VALID.replace('kind = "cmkf"', 'kind = "ukf"')), ["filter[2].kind", "'ukf'"],
+    pytest.param(_bad(VALID.replace('kind = "cmkf"', 'kind = "particle"')), ["filter[2].kind", "'particle'"],
                  id="unknown-filter-kind"),
     pytest.param(_bad(VALID.replace("sigma_r = 100.0", "sigma_r = -100.0")), ["sensor.sigma_r", "-100.0"],
                  id="negative-sigma"),

@@ -119,7 +119,7 @@ def case(id, spec, field, value, *more, marks=()):
 
 CASES = [
     # --- unknown kinds ------------------------------------------------------------------
-    case("filter-kind-unknown", edit(filter1__kind="ukf"), "filter[1].kind", "'ukf'", "ekf"),
+    case("filter-kind-unknown", edit(filter1__kind="particle"), "filter[1].kind", "'particle'", "ekf"),
     case("filter-kind-unknown-second", plus_filter(kind="particle", label="PF"), "filter[2].kind", "'particle'"),
     case("sensor-kind-unknown", edit(sensor__kind="sonar"), "sensor.kind", "'sonar'", "polar"),
     case("scenario-kind-unknown", edit(scenario__kind="spiral"), "scenario.kind", "'spiral'", "crossing"),

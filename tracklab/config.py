@@ -505,6 +505,11 @@ def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q) -> Filter
             raise ConfigError(f, f"filter[{i}].debias", debias, "the additive (Lerro) conversion is 2-D: use plain or unbiased with a spherical sensor")
         options["debias"] = debias
 
+    if fkind == "ukf":
+        options["ut_alpha"] = fs.number("ut_alpha", 1.0, lo=1e-4, hi=1.0)
+        options["ut_beta"] = fs.number("ut_beta", 2.0, nonneg=True)
+        options["ut_kappa"] = fs.number("ut_kappa", 0.0, nonneg=True)
+
     # the noise the filter assumes: defaults to the sensors' own
     if mkind == "suite":
         r = tuple(v**2 for v in meas.sigma)

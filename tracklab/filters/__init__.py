@@ -20,6 +20,7 @@ from tracklab.filters.kalman import (
     noise_params,
 )
 from tracklab.filters.polar import model_polar_kf
+from tracklab.filters.unscented import model_ukf
 
 # kind -> (one-line description, measurement models it accepts; "suite" = several sensors)
 FILTER_KINDS = {
@@ -28,6 +29,7 @@ FILTER_KINDS = {
     "cmkf": ("converted-measurement KF; debias = plain | additive | unbiased", ("polar", "spherical")),
     "polar_kf": ("polar-state KF [r, ṙ, β, β̇], two decoupled channels (2-D)", ("polar",)),
     "sequential_ekf": ("sequential EKF: angles first, re-linearise, then range", ("polar", "spherical", "angles", "suite")),
+    "ukf": ("unscented KF; ut_alpha, ut_beta, ut_kappa (default 1, 2, 0)", ("polar", "spherical", "angles", "cartesian", "suite")),
     "alpha_beta": ("α-β filter; gains = kalata | growing_memory | explicit alpha, beta", ("cartesian", "polar", "spherical")),
     "alpha_beta_gamma": ("α-β-γ filter; gains = kalata | growing_memory | explicit", ("cartesian", "polar", "spherical")),
 }
@@ -46,6 +48,9 @@ def build(kind, model, sensor, params, options=None) -> Filter:
         return model_polar_kf(model.F[0, 1], sensor, params)
     if kind == "sequential_ekf":
         return model_sequential_ekf(model, sensor, params)
+    if kind == "ukf":
+        return model_ukf(model, sensor, params, options.get("ut_alpha", 1.0), options.get("ut_beta", 2.0),
+                         options.get("ut_kappa", 0.0))
     if kind in ("alpha_beta", "alpha_beta_gamma"):
         return model_alpha_beta(
             model, sensor, params, options.get("gains", "kalata"), options.get("floor"), options.get("conversion", "plain")
@@ -56,5 +61,5 @@ def build(kind, model, sensor, params, options=None) -> Filter:
 __all__ = [
     "FILTER_KINDS", "Filter", "Gaussian", "Meas", "Out", "Prior", "build", "ekf", "gaussian_filter",
     "growing_memory_alpha_beta", "growing_memory_alpha_beta_gamma", "kalata_alpha_beta", "kalata_alpha_beta_gamma",
-    "kalman_update", "kf", "model_alpha_beta", "noise_params", "tracking_index", "wrap_angle",
+    "kalman_update", "kf", "model_alpha_beta", "model_ukf", "noise_params", "tracking_index", "wrap_angle",
 ]
