@@ -360,3 +360,24 @@ label = "KF"
     assert "rmse_z" in f["series"]  # 3-D
     assert np.isfinite(f["summary"]["rmse_pos"]) and 0 < f["summary"]["rmse_pos"] < 100
     assert not (folder / "res").exists() and not (tmp_path / "results").exists()
+
+
+def test_interrupted_run_leaves_previous_results_intact(tmp_path):
+    """Ctrl-C (SIGINT) part-way through a run: exit 130, no traceback, the old folder untouched."""
+    import signal
+    import time
+
+    (tmp_path / "small.toml").write_text(VALID)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "stats.json").write_text("previous")
+    proc = subprocess.Popen([*_command(), "run", "small.toml", "--runs", "100000000", "--out", "out", "--no-figures"],
+                            cwd=tmp_path, env=_ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(8)  # importing, validating, compiling, first chunks
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "interrupted" in err
+    assert (out / "stats.json").read_text() == "previous"
+    assert sorted(p.name for p in out.iterdir()) == ["stats.json"]
+    assert leftovers(tmp_path) == []

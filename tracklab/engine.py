@@ -250,7 +250,7 @@ def monte_carlo(
         dt=dt,
         dim=scenario.dim,
         sums={label: a.data for label, a in acc.items()},
-        pcrlb=_pcrlb(scenario, np.asarray(P0_cv), info / runs),
+        pcrlb=pcrlb(scenario, np.asarray(P0_cv), info / runs),
         wall_s=wall,
         compile_s=compile_s,
         labels=[s.label for s in specs],
@@ -259,27 +259,26 @@ def monte_carlo(
     )
 
 
-def _pcrlb(scenario, P0_cv, info_pos):
+def pcrlb(scenario, P0_cv, info_pos):
     """Tichavský et al. recursion (REFERENCE_MATH §5) for linear-Gaussian dynamics.
 
     J_{k+1} = (Q + F J_k⁻¹ Fᵀ)⁻¹ + E[H̃ᵀ R⁻¹ H̃], the expectation averaged over
-    the simulated truths; J_0 = P0⁻¹. Returns J⁻¹ per measurement step.
+    the simulated truths (``info_pos``, (T, dim, dim), position block); J_0 = P0⁻¹.
+    Returns J⁻¹ per measurement step, or None when the truth has no Gaussian model.
     """
     lg = scenario.linear_gaussian()
     if lg is None:
         return None
-    F, Q = lg
-    d = scenario.dim
-    pos = np.arange(d) * 2
-    Jinv = P0_cv.copy()
-    out = np.empty((len(info_pos),) + P0_cv.shape)
-    for k, Ik in enumerate(info_pos):  # host-side recursion over a (T, n, n) array
-        Jz = np.zeros_like(P0_cv)
-        Jz[np.ix_(pos, pos)] = Ik
-        J = np.linalg.inv(Q + F @ Jinv @ F.T) + Jz
-        Jinv = np.linalg.inv(J)
-        out[k] = Jinv
-    return out
+    F, Q = (jnp.asarray(a) for a in lg)
+    pos = np.arange(scenario.dim) * 2
+    Jz = jnp.zeros((len(info_pos),) + P0_cv.shape).at[:, pos[:, None], pos[None, :]].set(jnp.asarray(info_pos))
+
+    def step(Jinv, Jz_k):
+        Jinv = jnp.linalg.inv(jnp.linalg.inv(Q + F @ Jinv @ F.T) + Jz_k)
+        return Jinv, Jinv
+
+    _, out = jax.lax.scan(step, jnp.asarray(P0_cv), Jz)
+    return np.asarray(out)
 
 
 # ------------------------------------------------------------------ user measurements

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab.engine import MonteCarloResult, Sums, make_chunk_fn
+from tracklab.engine import MonteCarloResult, Sums, make_chunk_fn, pcrlb
 from tracklab.metrics import statistics
 from tracklab.report import _jsonable, atomic_folder
 
@@ -98,14 +98,12 @@ def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=
                 progress((b0 // block) * n_chunks + c + 1, -(-P // block) * n_chunks)
     wall = time.perf_counter() - t0
 
-    from tracklab.engine import _pcrlb
-
     results = []
     for j, f in enumerate(points):
         res = MonteCarloResult(
             runs=runs, steps=exp.steps, dt=exp.dt, dim=exp.dim,
             sums={l: a.data for l, a in acc[j].items()},
-            pcrlb=_pcrlb(exp.scenario, exp.prior_covariance(), info[j] / runs),
+            pcrlb=pcrlb(exp.scenario, exp.prior_covariance(), info[j] / runs),
             wall_s=wall, compile_s=0.0, labels=[s.label for s in specs], kinds={s.label: s.kind for s in specs},
         )
         results.append({"factors": dict(zip(names, map(float, f))), "stats": statistics(res, exp.window)})
