@@ -45,7 +45,8 @@ def cmd_run(args) -> int:
         if sys.stderr.isatty() or done == total:
             print(f"\r{exp.name}: {done}/{total} runs", end="\n" if done == total else "", file=sys.stderr, flush=True)
 
-    doc = exp.run(runs=runs, seed=args.seed, out=out, progress=progress, figures=not args.no_figures)
+    doc = exp.run(runs=runs, seed=args.seed, out=out, progress=progress, figures=not args.no_figures,
+                  precision="float32" if args.float32 else None)
     print(f"# {exp.name}: {runs} runs x {exp.steps} steps, window {exp.window[0]}-{exp.window[1]}, "
           f"{doc['wall_s']:.1f} s (compile {doc['compile_s']:.1f} s)")
     print(markdown_table(doc), end="")
@@ -185,6 +186,7 @@ def build_parser():
     r.add_argument("--seed", type=_seed, help="random seed (default: the file's)")
     r.add_argument("--out", help="results folder (default: results/<name>/)")
     r.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    r.add_argument("--float32", action="store_true", help="single precision (as precision = \"float32\")")
     r.set_defaults(func=cmd_run)
     tu = sub.add_parser("tune", help="tune filter parameters by gradient descent through the Monte-Carlo runs")
     tu.add_argument("experiment")

@@ -144,6 +144,7 @@ class Experiment:
     window: tuple[int, int]
     raw: dict
     also_runs: tuple[int, ...] = ()
+    precision: str = "float64"
 
     @property
     def dim(self) -> int:
@@ -172,28 +173,31 @@ class Experiment:
             specs.append(FilterSpec(fc.label, fc.kind, flt, report_model, self.prior["acc_sigma"] ** 2, view))
         return specs
 
-    def monte_carlo(self, runs=None, seed=None, progress=None, chunk=None):
+    def monte_carlo(self, runs=None, seed=None, progress=None, chunk=None, precision=None):
         import jax
 
         from tracklab.engine import monte_carlo
 
-        return monte_carlo(
-            self.scenario,
-            self.sensor,
-            self.filter_specs(),
-            runs or self.runs,
-            jax.random.key(self.seed if seed is None else seed),
-            self.prior_covariance(),
-            chunk=chunk or self.chunk,
-            progress=progress,
-        )
+        precision = precision or self.precision
+        with jax.enable_x64(precision == "float64"):  # the filters' constants in the same precision
+            return monte_carlo(
+                self.scenario,
+                self.sensor,
+                self.filter_specs(),
+                runs or self.runs,
+                jax.random.key(self.seed if seed is None else seed),
+                self.prior_covariance(),
+                chunk=chunk or self.chunk,
+                progress=progress,
+                precision=precision,
+            )
 
-    def run(self, runs=None, seed=None, out=None, progress=None, figures=True):
+    def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None):
         """Run and write the results folder; returns the statistics dictionary."""
         from tracklab.report import results_folder, write_results
 
         out = results_folder(self, out)
-        res = self.monte_carlo(runs=runs, seed=seed, progress=progress)
+        res = self.monte_carlo(runs=runs, seed=seed, progress=progress, precision=precision)
         return write_results(self, res, out, figures=figures)
 
 
@@ -357,6 +361,7 @@ def load_experiment(path) -> Experiment:
     if runs * steps > MAX_RUN_STEPS:
         raise ConfigError(f, "experiment.runs", runs, f"runs x steps must be <= {MAX_RUN_STEPS:.0e}")
     chunk = ex.integer("chunk", None, lo=1, hi=1_000_000)
+    precision = ex.string("precision", "float64", choices=("float64", "float32"))
     ex.get("description")
     also = ex.get("also_runs", [])  # extra run counts `tracklab reproduce` writes, e.g. a paper's own
     if not isinstance(also, list) or any(isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= MAX_RUNS for v in also):
@@ -443,7 +448,7 @@ def load_experiment(path) -> Experiment:
 
     return Experiment(
         path=path, name=name, runs=runs, seed=seed, dt=dt, steps=steps, chunk=chunk, scenario=scenario,
-        sensor=suite, filters=filters, prior=prior, window=(w[0], w[1]), raw=raw, also_runs=tuple(also),
+        sensor=suite, filters=filters, prior=prior, window=(w[0], w[1]), raw=raw, also_runs=tuple(also), precision=precision,
     )
 
 

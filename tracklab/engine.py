@@ -200,19 +200,30 @@ def monte_carlo(
     chunk: int | None = None,
     params: Sequence[Any] | None = None,
     progress: Callable[[int, int], None] | None = None,
+    precision: str = "float64",
 ) -> MonteCarloResult:
     """Per-step error statistics of several filters over ``runs`` Monte-Carlo runs.
 
     ``P0_cv`` is the prior covariance in CV layout: run i's prior mean is the
     truth one period before the first measurement plus a N(0, P0) draw, shared
-    by all filters in that run.
+    by all filters in that run. ``precision = "float32"`` traces and runs the
+    simulation and the filters in single precision (JAX's 64-bit mode off for
+    them); sums are accumulated on the host in float64 either way, and the
+    random draws differ from the float64 ones.
     """
+    with jax.enable_x64(precision == "float64"):
+        return _monte_carlo(scenario, sensor, specs, runs, key, P0_cv, chunk, params, progress, precision)
+
+
+def _monte_carlo(scenario, sensor, specs, runs, key, P0_cv, chunk, params, progress, precision):
     dt = float(scenario.dt)
     sharding, n_dev = _run_sharding()
     chunk = int(min(chunk or 1000, runs))
     chunk = -(-chunk // n_dev) * n_dev  # a multiple of the device count
     fn = make_chunk_fn(scenario, sensor, specs, P0_cv, dt)
     params_list = list(params) if params is not None else [s.filter.params for s in specs]
+    if precision == "float32":
+        params_list = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float32), params_list)
     if isinstance(key, int):
         key = jax.random.key(key)
 
@@ -250,13 +261,18 @@ def monte_carlo(
         dt=dt,
         dim=scenario.dim,
         sums={label: a.data for label, a in acc.items()},
-        pcrlb=pcrlb(scenario, np.asarray(P0_cv), info / runs),
+        pcrlb=_pcrlb64(scenario, np.asarray(P0_cv, np.float64), info / runs),
         wall_s=wall,
         compile_s=compile_s,
         labels=[s.label for s in specs],
         kinds={s.label: s.kind for s in specs},
         example=example,
     )
+
+
+def _pcrlb64(scenario, P0_cv, info_pos):
+    with jax.enable_x64(True):
+        return pcrlb(scenario, P0_cv, info_pos)
 
 
 def pcrlb(scenario, P0_cv, info_pos):
@@ -300,7 +316,8 @@ def run_filter(flt: Filter, z, *, x0, P0, params=None, dt: float = 1.0) -> Filte
 
     ``z`` is (T, m) or (N, T, m); a row of NaN is a missed detection
     (predict-only). ``x0, P0`` is the prior one sample period before ``z[0]``;
-    each step predicts, then updates with ``z[k]``.
+    each step predicts, then updates with ``z[k]``. For single precision, build
+    the filter and call this inside ``with jax.enable_x64(False):`` with float32 inputs.
     """
     params = flt.params if params is None else params
     z = jnp.asarray(z)

@@ -127,8 +127,8 @@ def _model_predict(model):
 
 
 def _h_state(model, sensor):
-    pos = np.array(model.pos_idx)
-    return lambda x: sensor.h(x[pos])
+    pos = tuple(model.pos_idx)
+    return lambda x: sensor.h(jnp.stack([x[i] for i in pos]))
 
 
 def model_kf(model, sensor, params) -> Filter:

@@ -55,7 +55,7 @@ def model_ukf(model, sensor, params, alpha=1.0, beta=2.0, kappa=0.0):
 
     def update(p, g, z, present):
         X = sigma_points(g.x, g.P, scale)
-        Z = sensor.h(X[:, pos])  # (2n+1, m)
+        Z = sensor.h(jnp.stack([X[:, i] for i in pos], axis=-1))  # (2n+1, m)
         dZ = jnp.where(angles, wrap_angle(Z - Z[0]), Z - Z[0])
         z_hat = Z[0] + wm @ dZ
         dZ = jnp.where(angles, wrap_angle(Z - z_hat), Z - z_hat)
