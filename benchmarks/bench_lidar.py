@@ -231,11 +231,11 @@ def render(info, cmd, cfg, single, alls, sim, sweep, mems, total_s, load_end):
              "function (simulate + filter + statistics + transfer + host-side accumulation, as engine.monte_carlo "
              f"does it); the fastest of {cfg['repeat']} such pass(es) is kept. Compile = first call (one chunk, compile + run) - median steady per-chunk time.")
     L.append("")
-    L.append("| Filters | Throughput (runs·steps/s) | Wall (s) | Per chunk, median [min–max] (s) | Compile (s) | Wall / all-5 wall |")
+    L.append("| Filters | Throughput (runs·steps/s) | Wall (s) | Per chunk, median [min–max] (s) | Compile (s) | Wall / all-filters wall |")
     L.append("|---|---:|---:|---:|---:|---:|")
     rows = list(single) + [alls] + [sim]
     for r in rows:
-        name = ", ".join(r["labels"]) if len(r["labels"]) < 5 else "**all 5**"
+        name = ", ".join(r["labels"]) if len(r["labels"]) == 1 else f"**all {len(r['labels'])}**"
         if not r["labels"]:
             name = "(simulation only, no filter)"
         share = f"{100 * r['wall_s'] / alls['wall_s']:.0f} %"
@@ -243,10 +243,10 @@ def render(info, cmd, cfg, single, alls, sim, sweep, mems, total_s, load_end):
                  f"[{r['min_chunk_s']:.3f}–{r['max_chunk_s']:.3f}] | {r['compile_s']:.2f} | {share} |")
     ssum = sum(r["wall_s"] for r in single)
     L.append("")
-    L.append(f"Sum of the five single-filter walls: {ssum:.2f} s (each includes the simulation, which alone "
-             f"takes {sim['wall_s']:.2f} s); all 5 in one function: {alls['wall_s']:.2f} s.")
+    L.append(f"Sum of the single-filter walls: {ssum:.2f} s (each includes the simulation, which alone "
+             f"takes {sim['wall_s']:.2f} s); all in one function: {alls['wall_s']:.2f} s.")
     L.append("")
-    L.append(f"## Chunk size (all 5 filters, {cfg['runs']} runs)")
+    L.append(f"## Chunk size (all filters, {cfg['runs']} runs)")
     L.append("")
     L.append("The last chunk is padded to full size (masked runs), so a chunk that does not divide the run "
              "count does some wasted work.")
@@ -257,7 +257,7 @@ def render(info, cmd, cfg, single, alls, sim, sweep, mems, total_s, load_end):
         L.append(f"| {r['chunk']} | {r['n_chunks']} | {fmt_rate(r['throughput'])} | {r['wall_s']:.2f} | "
                  f"{r['steady_chunk_s']:.3f} | {r['compile_s']:.2f} |")
     L.append("")
-    L.append("## Peak resident memory (all 5 filters, fresh subprocess, `exp.monte_carlo`)")
+    L.append("## Peak resident memory (all filters, fresh subprocess, `exp.monte_carlo`)")
     L.append("")
     L.append("`resource.getrusage(RUSAGE_SELF).ru_maxrss` in the child (KiB on Linux, shown in MiB): baseline after "
              "importing jax + tracklab, loading the experiment and initialising the backend; again after the first "
