@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 import tracklab
+from polar_pass import SIGMA, wrapping_pass
 from tracklab.filters import build, ekf, kf, noise_params
 from tracklab.models import ca, cv
 from tracklab.sensors import Sensor
@@ -124,19 +125,8 @@ def test_polar_ekf_matches_numpy(public):
 
 def test_angle_innovation_is_wrapped_across_pi():
     """A target near β = ±π: the measured angle jumps by 2π, the estimate must not."""
-    rng = np.random.default_rng(4)
-    dt, T = 1.0, 60
-    m = cv(2, dt)
-    s = np.array([-10000.0, 0.0, -300.0, 10.0])  # crosses the negative x axis
-    truth = []
-    for _ in range(T):
-        s = m.F @ s
-        truth.append(s)
-    truth = np.array(truth)
-    sig = np.array([5.0, 0.001])
-    z = np.stack([np.hypot(truth[:, 0], truth[:, 2]), np.arctan2(truth[:, 2], truth[:, 0])], 1)
-    z = z + rng.normal(size=z.shape) * sig
-    z[:, 1] = np.angle(np.exp(1j * z[:, 1]))
+    m, truth, z = wrapping_pass()
+    sig = SIGMA
     flt = build("ekf", m, Sensor("polar", 2, tuple(sig)), noise_params(0.01, sig**2))
     x0, P0 = np.linalg.solve(m.F, truth[0]), np.diag([50.0, 5.0, 50.0, 5.0]) ** 2
     res = tracklab.run_filter(flt, z, x0=x0, P0=P0)

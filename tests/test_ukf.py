@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import tracklab
+from polar_pass import SIGMA, wrapping_pass
 from tracklab.config import load_experiment
 from tracklab.filters import build, noise_params
 from tracklab.metrics import statistics
@@ -76,18 +77,8 @@ def test_ukf_is_consistent_and_at_the_bound_on_the_lidar_crossing(tmp_path):
 
 def test_ukf_wraps_angles_across_pi():
     """A target crossing the negative x axis: azimuth jumps from +π to −π; the track must not."""
-    rng = np.random.default_rng(4)
-    m = cv(2, 1.0)
-    s = np.array([-10000.0, 0.0, -300.0, 10.0])
-    truth = []
-    for _ in range(60):
-        s = m.F @ s
-        truth.append(s)
-    truth = np.array(truth)
-    sig = np.array([5.0, 0.001])
-    z = np.stack([np.hypot(truth[:, 0], truth[:, 2]), np.arctan2(truth[:, 2], truth[:, 0])], 1)
-    z = z + rng.normal(size=z.shape) * sig
-    z[:, 1] = np.angle(np.exp(1j * z[:, 1]))
+    m, truth, z = wrapping_pass()
+    sig = SIGMA
     flt = build("ukf", m, Sensor("polar", 2, tuple(sig)), noise_params(0.01, sig**2))
     res = tracklab.run_filter(flt, z, x0=np.linalg.solve(m.F, truth[0]), P0=np.diag([50.0, 5.0, 50.0, 5.0]) ** 2)
     err = np.hypot(res.x[:, 0] - truth[:, 0], res.x[:, 2] - truth[:, 2])

@@ -254,7 +254,7 @@ def _sensor_tables(f, raw):
     raise ConfigError(f, "sensor", tables, "must be a [sensor] table or one or more [[sensor]] tables")
 
 
-def _parse_sensors(f, raw, dt, steps):
+def _parse_sensors(f, raw):
     """First pass: kinds and names (the scenario's dimension may depend on them)."""
     out = []
     for where, table in _sensor_tables(f, raw):
@@ -368,7 +368,7 @@ def load_experiment(path) -> Experiment:
         raise ConfigError(f, "experiment.also_runs", also, f"must be a list of run counts in [1, {MAX_RUNS}]")
     ex.check_unknown()
 
-    parsed_sensors = _parse_sensors(f, raw, dt, steps)
+    parsed_sensors = _parse_sensors(f, raw)
     fixed_dims = {SENSOR_DIM[k] for _, _, k in parsed_sensors if k in SENSOR_DIM}
     sensor_dim = fixed_dims.pop() if len(fixed_dims) == 1 else None
     if len(fixed_dims) > 0:

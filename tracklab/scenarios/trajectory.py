@@ -13,6 +13,7 @@ measurement noise and the prior differ).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,9 +28,17 @@ class TrajectoryError(ValueError):
 
 
 def read_csv(path) -> np.ndarray:
+    """The validated (rows, 4) table of a trajectory file (parsed once per file version)."""
     path = Path(path)
     if not path.is_file():
         raise TrajectoryError("does not exist or is not a file")
+    st = path.stat()
+    return _parse_csv(str(path.resolve()), st.st_mtime_ns, st.st_size).copy()
+
+
+@functools.lru_cache(maxsize=32)
+def _parse_csv(path: str, mtime_ns: int, size: int) -> np.ndarray:
+    path = Path(path)
     try:
         lines = [ln.strip() for ln in path.read_text(encoding="utf-8-sig").splitlines()]
     except (OSError, UnicodeDecodeError) as e:
