@@ -112,6 +112,24 @@ def traj(csv_text=GOOD_CSV, **changes):
 
 
 
+# an angle-tracking experiment (paper 004): overflight seen by an alt-azimuth mount
+MOUNT = {
+    "experiment": {"name": "mount", "runs": 20, "seed": 0, "dt": 0.04, "steps": 100},
+    "scenario": {"kind": "overflight"},
+    "sensor": {"kind": "mount", "sigma_az": 0.02, "sigma_el": 0.02},
+    "filter": [{"kind": "kf", "label": "KF", "model": "ca", "q": 2e-6}],
+}
+
+
+def mount(**changes):
+    return edit(MOUNT, **changes)
+
+
+def windows(text):
+    """The mount experiment with a [report.windows] table (nested tables need raw TOML)."""
+    return to_toml(MOUNT) + "\n[report.windows]\n" + text + "\n"
+
+
 def case(id, spec, field, value, *more, marks=()):
     """spec: a config dict, raw TOML text, or {'cfg': ..., 'csv': ...}; value: repr of the bad value."""
     return pytest.param(spec, field, value, more, id=id, marks=marks)
@@ -197,7 +215,7 @@ CASES = [
     case("unknown-field-experiment", edit(experiment__run=20), "experiment.run", "20", "unknown field"),
     case("unknown-field-scenario", edit(scenario__sped=400.0), "scenario.sped", "400.0", "unknown field"),
     case("unknown-field-prior", edit(prior__pos=1.0), "prior.pos", "1.0", "unknown field"),
-    case("unknown-field-report", edit(report__windows=[1, 10]), "report.windows", "[1, 10]", "unknown field"),
+    case("unknown-field-report", edit(report__windos=[1, 10]), "report.windos", "[1, 10]", "unknown field"),
     case("filter-sigma-with-polar-sensor", edit(filter1__sigma=10.0), "filter[1].sigma", "10.0", "unknown field"),
     case("ca-model-with-cv-noise-field", edit(filter1__model="ca", filter1__accel_sigma=1.0),
          "filter[1].accel_sigma", "1.0", "unknown field"),
@@ -287,6 +305,43 @@ CASES = [
     case("steps-longer-than-trajectory", traj(experiment__steps=21), "experiment.steps", "21", "at most 20"),
     case("trajectory-start-past-end", traj(scenario__start=9.0), "experiment.steps", "10", "at most 2"),
     case("trajectory-start-negative", traj(scenario__start=-1.0), "scenario.start", "-1.0"),
+    # --- angle tracking: overflight, mount, STF, error space, prediction windows ---------------
+    case("overflight-elevation-95", mount(scenario__max_elevation=95.0), "scenario.max_elevation", "95.0", "(0, 90)"),
+    case("overflight-negative-altitude", mount(scenario__altitude=-1.0), "scenario.altitude", "-1.0", "> 0"),
+    case("mount-on-2d-crossing", mount(scenario={"kind": "crossing"}), "sensor.kind", "mount", "3-D"),
+    case("mount-beside-polar", edit(MOUNT, scenario={"kind": "crossing", "altitude": 1000.0}, sensor=[
+        {"kind": "mount", "sigma_az": 0.02, "sigma_el": 0.02},
+        {"kind": "spherical", "sigma_r": 10.0, "sigma_az": 0.001, "sigma_el": 0.001}]), "[[sensor]]", "mount", "other kinds"),
+    case("mount-sigma-zero", mount(sensor__sigma_el=0.0), "sensor.sigma_el", "0.0", "> 0"),
+    case("stf-rho-above-1", mount(filter=[{"kind": "stf", "model": "ca", "rho": 1.5}]), "filter[1].rho", "1.5", "(0, 1]"),
+    case("stf-rho-zero", mount(filter=[{"kind": "stf", "model": "ca", "rho": 0.0}]), "filter[1].rho", "0.0", "(0, 1]"),
+    case("stf-b-negative", mount(filter=[{"kind": "stf", "model": "ca", "b": -1.0}]), "filter[1].b", "-1.0", "> 0"),
+    case("error-space-unknown-guide", mount(filter=[{"kind": "error_space", "guide": "radar"}]), "filter[1].guide", "radar",
+         "sensor name"),
+    case("error-space-delay-without-guide", mount(filter=[{"kind": "error_space", "guide_delay": 2}]),
+         "filter[1].guide_delay", "2", "external guide"),
+    case("error-space-negative-delay", edit(MOUNT, sensor=[
+        {"kind": "mount", "name": "a", "sigma_az": 0.02, "sigma_el": 0.02},
+        {"kind": "mount", "name": "g", "sigma_az": 0.1, "sigma_el": 0.1}],
+        filter=[{"kind": "error_space", "guide": "g", "guide_delay": -1}]), "filter[1].guide_delay", "-1", "integer"),
+    case("error-space-on-polar", plus_filter(kind="error_space"), "filter[2].kind", "error_space", "cartesian"),
+    case("error-space-sees-two-sensors", edit(MOUNT, sensor=[
+        {"kind": "mount", "name": "a", "sigma_az": 0.02, "sigma_el": 0.02},
+        {"kind": "mount", "name": "b", "sigma_az": 0.1, "sigma_el": 0.1}],
+        filter=[{"kind": "error_space"}]), "filter[1].sensors", "['a', 'b']", "one sensor"),
+    case("q-and-sigma-both", mount(filter=[{"kind": "kf", "model": "ca", "q": 1e-6, "accel_increment_sigma": 0.1}]),
+         "filter[1].q", "1e-06", "not both"),
+    case("q-negative", mount(filter=[{"kind": "kf", "model": "ca", "q": -1e-6}]), "filter[1].q", "-1e-06", "> 0"),
+    case("r-wrong-length", mount(filter=[{"kind": "kf", "model": "ca", "r": [1e-4, 1e-4, 1e-4]}]), "filter[1].r",
+         "[0.0001, 0.0001, 0.0001]", "2 values"),
+    case("r-and-sigma-both", mount(filter=[{"kind": "kf", "model": "ca", "r": 1e-4, "sigma_az": 0.01}]), "filter[1].r",
+         "0.0001", "not both"),
+    case("window-reversed", windows('a = [5.0, 1.0]'), "report.windows.a", "[5.0, 1.0]", "t0 <= t1"),
+    case("window-outside-the-run", windows('late = [100.0, 200.0]'), "report.windows.late", "[100.0, 200.0]", "no step"),
+    case("window-two-rests", windows('a = "rest"\nb = "rest"'), "report.windows.b", "rest", "only one"),
+    case("window-reserved-name", windows('window = [1.0, 2.0]'), "report.windows.window", "window", "not 'window'"),
+    case("window-nan", windows('a = [nan, 2.0]'), "report.windows.a", "nan", "seconds"),
+    case("windows-not-a-table", to_toml(mount(report={"windows": [1, 2]})), "report.windows", "[1, 2]", "table"),
     # --- huge but finite values ----------------------------------------------------------------
     case("sigma-1e200", edit(sensor__sigma_r=1e200), "sensor.sigma_r", "1e+200"),
     case("filter-accel-sigma-1e200", edit(filter1__accel_sigma=1e200), "filter[1].accel_sigma", "1e+200"),

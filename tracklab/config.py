@@ -21,7 +21,8 @@ from tracklab.errors import ConfigError
 from tracklab.filters import FILTER_KINDS, build
 from tracklab.filters.fusion import LaserIrFusion, Select
 from tracklab.models import MODELS, cv
-from tracklab.scenarios import ConstantVelocity, Crossing, Trajectory, TrajectoryError, read_csv
+from tracklab.metrics import REPORT_WINDOW
+from tracklab.scenarios import ConstantVelocity, Crossing, MountFrame, Overflight, Trajectory, TrajectoryError, read_csv
 from tracklab.sensors import SENSOR_KINDS, Sensor, SensorSuite
 
 MAX_RUNS = 100_000_000
@@ -35,8 +36,10 @@ SENSOR_SIGMAS = {
     "spherical": ("sigma_r", "sigma_az", "sigma_el"),
     "angles": ("sigma_az", "sigma_el"),
     "cartesian": ("sigma",),
+    "mount": ("sigma_az", "sigma_el"),
 }
-SENSOR_DIM = {"polar": 2, "spherical": 3, "angles": 3}
+SENSOR_DIM = {"polar": 2, "spherical": 3, "angles": 3, "mount": 3}  # dimension of the truth they observe
+WINDOW_NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9 _.+-]{0,39}")
 
 
 class _Section:
@@ -145,6 +148,7 @@ class Experiment:
     raw: dict
     also_runs: tuple[int, ...] = ()
     precision: str = "float64"
+    pred_windows: dict = field(default_factory=dict)  # name -> (steps,) bool mask, report window included
 
     @property
     def dim(self) -> int:
@@ -156,7 +160,10 @@ class Experiment:
 
     def view(self, fc: FilterConfig):
         """(view function or None, measurement model) of what a filter sees."""
-        return _view(self.sensor, fc.sensors, fc.fusion)
+        names = fc.sensors
+        if fc.options.get("guide", "previous") != "previous":  # error_space: [main, guide]
+            names = tuple(names) + (fc.options["guide"],)
+        return _view(self.sensor, names, fc.fusion)
 
     def filter_specs(self):
         import jax.numpy as jnp
@@ -190,6 +197,7 @@ class Experiment:
                 chunk=chunk or self.chunk,
                 progress=progress,
                 precision=precision,
+                windows=self.pred_windows,
             )
 
     def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None):
@@ -209,7 +217,7 @@ def _view(suite: SensorSuite, names, fusion):
         ir = next(s.name for s in sub.sensors if s.kind == "angles")
         v = LaserIrFusion(suite, laser, ir, fusion)
         return v, v.model
-    if len(names) == len(suite.sensors):
+    if names == tuple(s.name for s in suite.sensors):
         return None, suite.sensors[0] if len(suite.sensors) == 1 else suite
     v = Select(suite, names)
     return v, v.model
@@ -290,7 +298,8 @@ def _build_sensors(f, parsed, dim, dt):
         else:
             sigma = tuple(sn.number(k, required=True, positive=True) for k in SENSOR_SIGMAS[kind])
         sn.check_unknown()
-        sensors.append(Sensor(kind, dim, sigma, p_detect, name=name, dt=dt, period=period, offset=offset))
+        frame_dim = 2 if kind == "mount" else dim  # a mount observes its two angles
+        sensors.append(Sensor(kind, frame_dim, sigma, p_detect, name=name, dt=dt, period=period, offset=offset))
     return SensorSuite(tuple(sensors))
 
 
@@ -375,8 +384,21 @@ def load_experiment(path) -> Experiment:
         raise ConfigError(f, "[[sensor]]", "...", "all sensors must observe positions of the same dimension")
 
     sc = _Section(f, "scenario", raw["scenario"])
-    kind = sc.string("kind", required=True, choices=("crossing", "constant_velocity", "trajectory"))
-    if kind == "crossing":
+    kind = sc.string("kind", required=True, choices=("crossing", "constant_velocity", "trajectory", "overflight"))
+    if kind == "overflight":
+        max_el = sc.number("max_elevation", 74.947)
+        if not 0.0 < max_el < 90.0:
+            raise ConfigError(f, "scenario.max_elevation", max_el, "must be an elevation in (0, 90) degrees")
+        scenario = Overflight(
+            dt=dt,
+            steps=steps,
+            altitude=sc.number("altitude", 8000.0, positive=True),
+            speed=sc.number("speed", 250.0, positive=True),
+            max_elevation=max_el,
+            t_closest=sc.number("t_closest", 75.0),
+            heading=sc.number("heading", 90.0),
+        )
+    elif kind == "crossing":
         scenario = Crossing(
             dt=dt,
             steps=steps,
@@ -414,11 +436,18 @@ def load_experiment(path) -> Experiment:
     sc.check_unknown()
     dim = scenario.dim
     suite = _build_sensors(f, parsed_sensors, dim, dt)
+    mounts = [s.kind == "mount" for s in suite.sensors]
+    if any(mounts):  # angle tracking: the truth in the mount frame, filters on [az, el] (deg)
+        if not all(mounts):
+            raise ConfigError(f, "[[sensor]]", "mount", "a mount cannot share an experiment with sensors of other kinds")
+        scenario = MountFrame(scenario)
+        dim = scenario.dim
 
     pr = _Section(f, "prior", raw.get("prior", {}))
+    angular = any(mounts)  # in the mount frame the prior is in deg, deg/s, deg/s²
     prior = {
-        "pos_sigma": pr.number("pos_sigma", 100.0, positive=True),
-        "vel_sigma": pr.number("vel_sigma", 10.0, positive=True),
+        "pos_sigma": pr.number("pos_sigma", 0.1 if angular else 100.0, positive=True),
+        "vel_sigma": pr.number("vel_sigma", 1.0 if angular else 10.0, positive=True),
         "acc_sigma": pr.number("acc_sigma", 1.0, positive=True),
     }
     pr.check_unknown()
@@ -427,7 +456,7 @@ def load_experiment(path) -> Experiment:
     if not isinstance(flist, list) or not flist:
         raise ConfigError(f, "[[filter]]", flist, "at least one [[filter]] table is required")
     filters, labels = [], set()
-    default_q = getattr(scenario, "accel_sigma", 1.0)
+    default_q = getattr(getattr(scenario, "scenario", scenario), "accel_sigma", 1.0)
     for i, table in enumerate(flist, start=1):
         fc = _parse_filter(f, i, table, suite, dim, dt, default_q)
         if fc.label in labels:
@@ -444,12 +473,53 @@ def load_experiment(path) -> Experiment:
         or not (1 <= w[0] <= w[1] <= steps)
     ):
         raise ConfigError(f, "report.window", w, f"must be [first, last] steps with 1 <= first <= last <= {steps}")
+    pred_windows = _pred_windows(f, rp.get("windows", {}), (w[0], w[1]), steps, dt)
     rp.check_unknown()
 
     return Experiment(
         path=path, name=name, runs=runs, seed=seed, dt=dt, steps=steps, chunk=chunk, scenario=scenario,
         sensor=suite, filters=filters, prior=prior, window=(w[0], w[1]), raw=raw, also_runs=tuple(also), precision=precision,
+        pred_windows=pred_windows,
     )
+
+
+def _pred_windows(f, table, window, steps, dt):
+    """[report.windows]: name = [t0, t1] (s, inclusive) or "rest" -> (steps,) step masks.
+
+    "rest" is the report window's steps outside every other named window. The
+    report window itself is always included, under ``REPORT_WINDOW``.
+    """
+    k = np.arange(1, steps + 1)
+    report = (k >= window[0]) & (k <= window[1])
+    if not isinstance(table, dict):
+        raise ConfigError(f, "report.windows", table, 'must be a table: name = [t0, t1] (seconds) or "rest"')
+    out, rest = {}, []
+    t = dt * k
+    for name, v in table.items():
+        field_name = f"report.windows.{name}"
+        if not WINDOW_NAME_RE.fullmatch(name) or name == REPORT_WINDOW:
+            raise ConfigError(f, field_name, name, f"window names are 1-40 letters, digits, spaces, '_.+-' (not {REPORT_WINDOW!r})")
+        if v == "rest":
+            rest.append(name)
+            continue
+        if (
+            not isinstance(v, list) or len(v) != 2
+            or any(isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) for x in v)
+            or not v[0] <= v[1]
+        ):
+            raise ConfigError(f, field_name, v, 'must be [t0, t1] in seconds with t0 <= t1, or "rest"')
+        mask = (t >= v[0] - 1e-9 * dt) & (t <= v[1] + 1e-9 * dt)
+        if not mask.any():
+            raise ConfigError(f, field_name, v, f"holds no step: steps are at t = k*{dt} s, k = 1..{steps}")
+        out[name] = mask
+    if len(rest) > 1:
+        raise ConfigError(f, f"report.windows.{rest[1]}", "rest", 'only one window can be "rest"')
+    if rest:
+        mask = report & ~np.any([m for m in out.values()] or [np.zeros(steps, bool)], axis=0)
+        if not mask.any():
+            raise ConfigError(f, f"report.windows.{rest[0]}", "rest", "holds no step of the report window")
+        out[rest[0]] = mask
+    return {REPORT_WINDOW: report} | out
 
 
 def _gain_value(fs, key, required=True):
@@ -473,7 +543,11 @@ def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q) -> Filter
 
     # what the filter sees
     all_names = tuple(s.name for s in suite.sensors)
-    names = fs.get("sensors", list(all_names))
+    guide = fs.string("guide", "previous") if fkind == "error_space" else "previous"
+    if guide != "previous" and guide not in all_names:
+        raise ConfigError(f, f"filter[{i}].guide", guide, f"must be \"previous\" or a sensor name from: {', '.join(all_names)}")
+    default_names = [n for n in all_names if n != guide]
+    names = fs.get("sensors", default_names)
     if not isinstance(names, list) or not names or any(not isinstance(n, str) or n not in all_names for n in names):
         raise ConfigError(f, f"filter[{i}].sensors", names, f"must be a list of sensor names from: {', '.join(all_names)}")
     names = tuple(dict.fromkeys(names))
@@ -487,6 +561,15 @@ def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q) -> Filter
             raise ConfigError(f, f"filter[{i}].fusion", fusion, "registration needs every infrared report: set its p_detect = 1")
     _, meas = _view(suite, names, fusion)
     mkind = meas.kind
+    if fkind == "error_space":
+        if len(names) != 1 or guide in names:
+            raise ConfigError(f, f"filter[{i}].sensors", list(names), "error_space observes one sensor (its guide is set by 'guide')")
+        if guide != "previous":
+            g = suite.subset((guide,)).sensors[0]
+            if g.kind != mkind or g.m != meas.m:
+                raise ConfigError(f, f"filter[{i}].guide", guide, f"the guide sensor must be of the observed sensor's kind ({mkind})")
+    if fkind == "kf" and not meas.linear:
+        raise ConfigError(f, f"filter[{i}].kind", fkind, "needs linear sensors only (cartesian or mount): use ekf, ukf or stf")
     ok = FILTER_KINDS[fkind][1]
     if mkind not in ok:
         seen = "several sensors" if mkind == "suite" else f"a '{mkind}' sensor"
@@ -498,10 +581,16 @@ def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q) -> Filter
     if fkind == "alpha_beta" and model != "cv" or fkind == "alpha_beta_gamma" and model != "ca":
         need = "cv" if fkind == "alpha_beta" else "ca"
         raise ConfigError(f, f"filter[{i}].model", model, f"{fkind} works on the {need} model")
-    if model == "cv":
-        sigma_v = fs.number("accel_sigma", default_q if default_q > 0 else 1.0, positive=True)
+    sigma_key = "accel_sigma" if model == "cv" else "accel_increment_sigma"
+    if fs.has("q"):  # the process-noise variance itself (a paper's q)
+        if fs.has(sigma_key):
+            raise ConfigError(f, f"filter[{i}].q", fs.get("q"), f"give either q or {sigma_key}, not both")
+        q = fs.number("q", positive=True)
+    elif model == "cv":
+        q = fs.number("accel_sigma", default_q if default_q > 0 else 1.0, positive=True) ** 2
     else:
-        sigma_v = fs.number("accel_increment_sigma", 1.0, positive=True)
+        q = fs.number("accel_increment_sigma", 1.0, positive=True) ** 2
+    sigma_v = math.sqrt(q)
 
     options = {}
     if fkind == "cmkf":
@@ -516,13 +605,36 @@ def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q) -> Filter
         options["ut_kappa"] = fs.number("ut_kappa", 0.0, nonneg=True)
 
     # the noise the filter assumes: defaults to the sensors' own
-    if mkind == "suite":
+    if fs.has("r"):  # the measurement-noise variances themselves, one or one per component
+        sig_keys = SENSOR_SIGMAS.get(mkind, ())
+        if any(fs.has(k) for k in sig_keys):
+            raise ConfigError(f, f"filter[{i}].r", fs.get("r"), f"give either r or {'/'.join(sig_keys)}, not both")
+        r = _sigma_list(f, f"filter[{i}].r", fs.get("r"), meas.m)  # variances, checked like sigmas
+    elif mkind == "suite":
         r = tuple(v**2 for v in meas.sigma)
     elif mkind == "cartesian":
         r = tuple(v**2 for v in (_sigma_list(f, f"filter[{i}].sigma", fs.get("sigma"), dim, required=False) or meas.sigma))
     else:
         r = tuple(fs.number(k, sv, positive=True) ** 2 for k, sv in zip(SENSOR_SIGMAS[mkind], meas.sigma))
-    params = {"q": sigma_v**2, "r": r}
+    params = {"q": q, "r": r}
+
+    if fkind == "stf":
+        params["rho"] = fs.number("rho", 0.95)
+        if not 0.0 < params["rho"] <= 1.0:
+            raise ConfigError(f, f"filter[{i}].rho", params["rho"], "the forgetting factor must be in (0, 1]")
+        params["b"] = fs.number("b", 1.0, positive=True)
+    if fkind == "error_space":
+        params["q_e"] = fs.number("q_e", q, positive=True)
+        r_e = fs.get("r_e")
+        params["r_e"] = r if r_e is None else _sigma_list(f, f"filter[{i}].r_e", r_e, meas.m)
+        options["guide"] = guide
+        if guide != "previous":
+            r_g = fs.get("r_guide")
+            g = suite.subset((guide,)).sensors[0]
+            params["r_guide"] = tuple(v**2 for v in g.sigma) if r_g is None else _sigma_list(f, f"filter[{i}].r_guide", r_g, meas.m)
+            options["guide_delay"] = fs.integer("guide_delay", 0, lo=0, hi=10_000)
+        elif fs.has("guide_delay"):
+            raise ConfigError(f, f"filter[{i}].guide_delay", fs.get("guide_delay"), "applies to an external guide sensor only")
 
     if fkind in ("alpha_beta", "alpha_beta_gamma"):
         order = 2 if fkind == "alpha_beta" else 3

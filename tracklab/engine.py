@@ -77,6 +77,9 @@ class MonteCarloResult:
     labels: list[str]
     kinds: dict[str, str]
     example: dict = field(default_factory=dict)  # run 0: truth, z, and each filter's estimates
+    axes: tuple[str, ...] = ("x", "y", "z")  # names of the reporting frame's position axes
+    units: tuple[str, str] = ("m", "m/s")  # of position and velocity
+    windows: list[str] = field(default_factory=list)  # named windows of the prediction-error maxima
 
 
 def _run_keys(key, idx):
@@ -85,10 +88,12 @@ def _run_keys(key, idx):
     return split[:, 0], split[:, 1], split[:, 2]
 
 
-def _filter_chunk(spec: FilterSpec, params, truth, z, prior_cv, P0_cv, live, dt, sparse=True):
+def _filter_chunk(spec: FilterSpec, params, truth, z, prior_cv, P0_cv, live, dt, sparse=True, windows=None):
     """Run one filter over a chunk; reduce to per-step sums over healthy runs.
 
     ``sparse``: some steps have no report from any sensor, so coasting there pays.
+    ``windows``: name -> (T,) bool mask of steps, for the per-run maxima of the
+    one-step prediction error.
     """
     flt = spec.filter
     if spec.view is not None:
@@ -119,11 +124,11 @@ def _filter_chunk(spec: FilterSpec, params, truth, z, prior_cv, P0_cv, live, dt,
         e_pred = out.x_pred[:, pv[0::2]] - truth_k[:, 0::2]  # one-step prediction error of the position
         bad = ~(jnp.isfinite(nees) & jnp.all(jnp.isfinite(out.x), axis=-1))
         bad = bad | (out.valid & ~jnp.isfinite(nis))
-        return state, (e, nees, nis, out.valid, out.dof, bad, out.x[0, pv], logdet_s, jnp.sum(e_pred**2, axis=-1))
+        return state, (e, nees, nis, out.valid, out.dof, bad, out.x[0, pv], logdet_s, e_pred)
 
     zs = jnp.swapaxes(z, 0, 1)
     truths = jnp.swapaxes(truth[:, 1:], 0, 1)
-    _, (e, nees, nis, upd, dof, bad, x_first, logdet_s, se_pred) = jax.lax.scan(body, state, (zs, truths, t))
+    _, (e, nees, nis, upd, dof, bad, x_first, logdet_s, e_pred) = jax.lax.scan(body, state, (zs, truths, t))
 
     diverged = jnp.any(bad, axis=0)  # (B,)
     ok = live & ~diverged
@@ -132,7 +137,13 @@ def _filter_chunk(spec: FilterSpec, params, truth, z, prior_cv, P0_cv, live, dt,
     ep, ev = e[..., 0::2], e[..., 1::2]  # positions, velocities (T, B, d)
     updf = (upd & ok[None, :]).astype(z.dtype)
     neg = -jnp.inf
-    return {
+    e_pred = jnp.where(ok[None, :, None], e_pred, 0.0)
+    a_pred = jnp.concatenate([jnp.abs(e_pred), jnp.linalg.norm(e_pred, axis=-1, keepdims=True)], axis=-1)
+    runmax = {  # per window: sum over runs of each run's largest |error| (per axis, then the norm)
+        f"runmax_pred@{name}": jnp.sum(jnp.max(jnp.where(jnp.asarray(mask)[:, None, None], a_pred, 0.0), axis=0), axis=0)
+        for name, mask in (windows or {}).items()
+    }
+    return runmax | {
         "count": jnp.broadcast_to(jnp.sum(okf), (T,)),
         "diverged": jnp.sum((live & diverged).astype(z.dtype)),
         "sum_pos": jnp.sum(ep, axis=1),
@@ -148,13 +159,18 @@ def _filter_chunk(spec: FilterSpec, params, truth, z, prior_cv, P0_cv, live, dt,
         "count_nis": jnp.sum(updf, axis=1),
         "dof_nis": jnp.sum(dof * updf, axis=1),
         "sum_logdet_s": jnp.sum(jnp.where(ok[None, :], logdet_s, 0.0) * updf, axis=1),
-        "sumsq_pred_pos": jnp.sum(jnp.where(ok[None, :], se_pred, 0.0), axis=1),
+        "sum_pred": jnp.sum(e_pred, axis=1),  # one-step prediction error, per axis
+        "sumsq_pred": jnp.sum(e_pred**2, axis=1),
         "example_x": x_first,  # the chunk's first run: estimates (T, 2d) in CV layout
     }
 
 
-def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt):
-    """The jitted per-chunk computation: (params_list, key, idx, live) -> sums."""
+def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, windows=None):
+    """The jitted per-chunk computation: (params_list, key, idx, live) -> sums.
+
+    ``windows``: name -> (steps,) bool mask, the report windows of the one-step
+    prediction error's per-run maxima.
+    """
     d = scenario.dim
     P0_cv = jnp.asarray(P0_cv)
     L0 = jnp.linalg.cholesky(P0_cv)
@@ -179,7 +195,7 @@ def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt):
             "_example": {"truth": truth[0], "z": z[0]},
         }
         for spec, params in zip(specs, params_list):
-            out[spec.label] = _filter_chunk(spec, params, truth, z, prior, P0_cv, live, dt, sparse)
+            out[spec.label] = _filter_chunk(spec, params, truth, z, prior, P0_cv, live, dt, sparse, windows)
         return out
 
     return jax.jit(chunk)
@@ -205,6 +221,7 @@ def monte_carlo(
     params: Sequence[Any] | None = None,
     progress: Callable[[int, int], None] | None = None,
     precision: str = "float64",
+    windows: dict[str, np.ndarray] | None = None,
 ) -> MonteCarloResult:
     """Per-step error statistics of several filters over ``runs`` Monte-Carlo runs.
 
@@ -213,18 +230,19 @@ def monte_carlo(
     by all filters in that run. ``precision = "float32"`` traces and runs the
     simulation and the filters in single precision (JAX's 64-bit mode off for
     them); sums are accumulated on the host in float64 either way, and the
-    random draws differ from the float64 ones.
+    random draws differ from the float64 ones. ``windows`` (name -> (steps,)
+    bool mask) are where each run's largest one-step prediction error is taken.
     """
     with jax.enable_x64(precision == "float64"):
-        return _monte_carlo(scenario, sensor, specs, runs, key, P0_cv, chunk, params, progress, precision)
+        return _monte_carlo(scenario, sensor, specs, runs, key, P0_cv, chunk, params, progress, precision, windows)
 
 
-def _monte_carlo(scenario, sensor, specs, runs, key, P0_cv, chunk, params, progress, precision):
+def _monte_carlo(scenario, sensor, specs, runs, key, P0_cv, chunk, params, progress, precision, windows):
     dt = float(scenario.dt)
     sharding, n_dev = _run_sharding()
     chunk = int(min(chunk or 1000, runs))
     chunk = -(-chunk // n_dev) * n_dev  # a multiple of the device count
-    fn = make_chunk_fn(scenario, sensor, specs, P0_cv, dt)
+    fn = make_chunk_fn(scenario, sensor, specs, P0_cv, dt, windows)
     params_list = list(params) if params is not None else [s.filter.params for s in specs]
     if precision == "float32":
         params_list = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float32), params_list)
@@ -271,6 +289,9 @@ def _monte_carlo(scenario, sensor, specs, runs, key, P0_cv, chunk, params, progr
         labels=[s.label for s in specs],
         kinds={s.label: s.kind for s in specs},
         example=example,
+        axes=tuple(getattr(scenario, "axes", ("x", "y", "z")[: scenario.dim])),
+        units=tuple(getattr(scenario, "units", ("m", "m/s"))),
+        windows=list(windows or {}),
     )
 
 
@@ -313,6 +334,7 @@ class FilterResult:
     S: jax.Array  # (..., T, m, m) innovation covariances
     valid: jax.Array  # (..., T) update happened
     dof: jax.Array  # (..., T) innovation components used
+    aux: Any = None  # what the filter family adds (e.g. the STF's fading factor), per step
 
 
 def run_filter(flt: Filter, z, *, x0, P0, params=None, dt: float = 1.0) -> FilterResult:
@@ -328,8 +350,8 @@ def run_filter(flt: Filter, z, *, x0, P0, params=None, dt: float = 1.0) -> Filte
     batched = z.ndim == 3
     zb = z if batched else z[None]
     N, T = zb.shape[0], zb.shape[1]
-    x0 = jnp.broadcast_to(jnp.asarray(x0, zb.dtype), (N,) + jnp.shape(x0)[-1:])
-    P0 = jnp.broadcast_to(jnp.asarray(P0, zb.dtype), (N,) + jnp.shape(P0)[-2:])
+    x0 = jnp.broadcast_to(jnp.asarray(x0, zb.dtype), (N,) + np.shape(x0)[-1:])
+    P0 = jnp.broadcast_to(jnp.asarray(P0, zb.dtype), (N,) + np.shape(P0)[-2:])
     out = _run_filter_jit(flt.init, flt.step, params, zb, x0, P0, float(dt))
     if not batched:
         out = jax.tree_util.tree_map(lambda a: a[0], out)
@@ -348,7 +370,7 @@ def _run_filter_impl(init, step, params, z, x0, P0, dt):
         return s, out
 
     _, out = jax.lax.scan(body, state, (jnp.swapaxes(z, 0, 1), t))
-    return tuple(jnp.swapaxes(a, 0, 1) for a in out)
+    return tuple(jax.tree_util.tree_map(lambda a: jnp.swapaxes(a, 0, 1), out))
 
 
 _run_filter_jit = jax.jit(_run_filter_impl, static_argnums=(0, 1, 6))

@@ -6,6 +6,14 @@ two-sided 95 % χ² intervals; the PCRLB on position. Over the report window
 (1-based measurement steps, both ends included): time-averaged RMSE (root of
 the mean of the per-step mean-square errors), maximum error, mean bias, mean
 NEES/NIS and the fraction of steps whose average lies inside its interval.
+
+One-step prediction error (every filter's prediction of the next position,
+made before that measurement, against the true position): per step its RMS
+and mean per axis; per named window (steps given as a mask) its RMS
+(``pred_err_rms``) and the Monte-Carlo mean of each run's largest error in
+the window (``pred_err_max``, what a single recorded pass such as paper 004's
+Fig. 3 shows), for the norm and per axis. The report window's values have
+plain keys; another window's carry its name: ``pred_err_max[60-90 s]``.
 """
 
 from __future__ import annotations
@@ -51,16 +59,29 @@ def _inside(v, lo, hi):
         return np.where(np.isfinite(v), ((v >= lo) & (v <= hi)).astype(float), np.nan)
 
 
-def per_step(sums, dim):
+REPORT_WINDOW = "window"  # the name under which the report window's prediction error is kept
+
+
+def window_key(key, name):
+    return key if name == REPORT_WINDOW else f"{key}[{name}]"
+
+
+def per_step(sums, dim, axes=AXES):
     """Per-step series for one filter from its sums."""
     c = sums["count"]
     s = {}
+    msepred = _div(sums["sumsq_pred"], c[:, None])
+    for a in range(dim):
+        s[f"pred_rmse_{axes[a]}"] = np.sqrt(msepred[:, a])
+        s[f"pred_mean_err_{axes[a]}"] = _div(sums["sum_pred"][:, a], c)
+    s["pred_mse"] = msepred.sum(-1)
+    s["pred_rmse"] = np.sqrt(s["pred_mse"])
     msep = _div(sums["sumsq_pos"], c[:, None])
     msev = _div(sums["sumsq_vel"], c[:, None])
     bias = _div(sums["sum_pos"], c[:, None])
     bias_v = _div(sums["sum_vel"], c[:, None])
     for a in range(dim):
-        ax = AXES[a]
+        ax = axes[a]
         s[f"rmse_{ax}"] = np.sqrt(msep[:, a])
         s[f"mean_err_{ax}"] = bias[:, a]
         s[f"max_abs_err_{ax}"] = np.where(c > 0, sums["max_abs_pos"][:, a], np.nan)
@@ -83,8 +104,13 @@ def per_step(sums, dim):
     return s
 
 
-def summarise(series, window, pcrlb_pos=None, diverged=0.0, runs=0):
-    """Time-averaged summary of per-step series over a 1-based inclusive window."""
+def summarise(series, window, pcrlb_pos=None, diverged=0.0, runs=0, axes=AXES, pred_windows=None, runmax=None):
+    """Time-averaged summary of per-step series over a 1-based inclusive window.
+
+    ``pred_windows``: name -> (steps,) mask; ``runmax``: name -> sums over runs of
+    each run's largest prediction error in that window (per axis, then the norm),
+    with ``series["healthy_runs"]`` as the number of runs.
+    """
     a, b = window
     w = slice(a - 1, b)
 
@@ -97,7 +123,7 @@ def summarise(series, window, pcrlb_pos=None, diverged=0.0, runs=0):
         "rmse_pos": float(np.sqrt(np.mean(series["mse_pos"][w]))),
         "rmse_vel": float(np.sqrt(np.mean(series["mse_vel"][w]))),
     }
-    for ax in AXES:
+    for ax in axes:
         if f"rmse_{ax}" in series:
             out[f"rmse_{ax}"] = float(np.sqrt(np.mean(np.square(series[f"rmse_{ax}"][w]))))
             out[f"mean_err_{ax}"] = float(np.mean(series[f"mean_err_{ax}"][w]))
@@ -111,12 +137,26 @@ def summarise(series, window, pcrlb_pos=None, diverged=0.0, runs=0):
     if pcrlb_pos is not None:
         out["pcrlb_pos"] = float(np.sqrt(np.mean(np.square(pcrlb_pos[w]))))
         out["rmse_pos_over_pcrlb"] = out["rmse_pos"] / out["pcrlb_pos"]
+    dim = sum(1 for ax in axes if f"pred_rmse_{ax}" in series)
+    k = np.arange(len(series["pred_mse"]))
+    windows = {REPORT_WINDOW: (k >= a - 1) & (k < b)} | dict(pred_windows or {})
+    n = float(series["healthy_runs"][0]) if len(series["healthy_runs"]) else 0.0
+    for name, mask in windows.items():
+        mask = np.asarray(mask, bool)
+        out[window_key("pred_err_rms", name)] = float(np.sqrt(np.mean(series["pred_mse"][mask])))
+        for i, ax in enumerate(axes[:dim]):
+            out[window_key(f"pred_err_rms_{ax}", name)] = float(np.sqrt(np.mean(np.square(series[f"pred_rmse_{ax}"][mask]))))
+        if runmax is not None and name in runmax and n > 0:
+            mx = np.asarray(runmax[name], float) / n
+            out[window_key("pred_err_max", name)] = float(mx[-1])
+            for i, ax in enumerate(axes[:dim]):
+                out[window_key(f"pred_err_max_{ax}", name)] = float(mx[i])
     out["diverged"] = int(diverged)
     out["runs"] = int(runs)
     return out
 
 
-def pcrlb_series(pcrlb, dim):
+def pcrlb_series(pcrlb, dim, axes=AXES):
     """Position bounds per axis and in total from J⁻¹ (CV layout)."""
     if pcrlb is None:
         return {}
@@ -124,7 +164,7 @@ def pcrlb_series(pcrlb, dim):
     tot = np.zeros(len(pcrlb))
     for a in range(dim):
         v = pcrlb[:, 2 * a, 2 * a]
-        out[f"pcrlb_{AXES[a]}"] = np.sqrt(v)
+        out[f"pcrlb_{axes[a]}"] = np.sqrt(v)
         tot += v
     out["pcrlb_pos"] = np.sqrt(tot)
     vel = sum(pcrlb[:, 2 * a + 1, 2 * a + 1] for a in range(dim))
@@ -132,19 +172,28 @@ def pcrlb_series(pcrlb, dim):
     return out
 
 
-def statistics(result, window):
-    """All statistics of a MonteCarloResult: {'bounds': {...}, 'filters': {label: {...}}}."""
-    bounds = pcrlb_series(result.pcrlb, result.dim)
+def statistics(result, window, pred_windows=None):
+    """All statistics of a MonteCarloResult: {'bounds': {...}, 'filters': {label: {...}}}.
+
+    ``pred_windows``: name -> (steps,) mask of the prediction-error windows
+    (the report window is always one, as ``REPORT_WINDOW``).
+    """
+    axes = tuple(getattr(result, "axes", AXES))
+    bounds = pcrlb_series(result.pcrlb, result.dim, axes)
     filters = {}
     for label in result.labels:
         sums = result.sums[label]
-        series = per_step(sums, result.dim)
+        series = per_step(sums, result.dim, axes)
+        runmax = {k.split("@", 1)[1]: v for k, v in sums.items() if k.startswith("runmax_pred@")}
         summary = summarise(
             series,
             window,
             bounds.get("pcrlb_pos"),
             diverged=float(np.asarray(sums["diverged"]).sum()),
             runs=result.runs,
+            axes=axes,
+            pred_windows=pred_windows,
+            runmax=runmax,
         )
         filters[label] = {"kind": result.kinds[label], "summary": summary, "series": series}
     return {"bounds": bounds, "filters": filters}

@@ -18,21 +18,26 @@ from pathlib import Path
 
 import numpy as np
 
-from tracklab.metrics import AXES, statistics
+from tracklab.metrics import AXES, REPORT_WINDOW, statistics
 
+# (summary key, title, format); {p}/{v} are the position/velocity units, {a} an axis name
 COLUMNS = [
-    ("rmse_pos", "RMSE pos (m)", "{:.2f}"),
-    ("rmse_vel", "RMSE vel (m/s)", "{:.2f}"),
+    ("rmse_pos", "RMSE pos ({p})", "{:.{d}f}"),
+    ("rmse_vel", "RMSE vel ({v})", "{:.{d}f}"),
     ("rmse_pos_over_pcrlb", "RMSE/PCRLB", "{:.3f}"),
-    ("max_err_pos", "max err pos (m)", "{:.1f}"),
-    ("mean_err_x", "mean err x (m)", "{:.2f}"),
-    ("mean_err_y", "mean err y (m)", "{:.2f}"),
-    ("mean_err_z", "mean err z (m)", "{:.2f}"),
+    ("max_err_pos", "max err pos ({p})", "{:.{d1}f}"),
+    ("mean_err_{a}", "mean err {a} ({p})", "{:.{d}f}"),
+    ("pred_err_rms", "pred err RMS ({p})", "{:.{d}f}"),
+    ("pred_err_max", "pred err max ({p})", "{:.{d}f}"),
     ("nees", "NEES", "{:.2f}"),
     ("nees_in_bounds", "NEES in 95% (%)", "{:.0%}"),
     ("nis", "NIS", "{:.2f}"),
     ("diverged", "diverged", "{:d}"),
     ("runs", "runs", "{:d}"),
+]
+WINDOW_COLUMNS = [  # per named prediction-error window
+    ("pred_err_rms[{w}]", "pred err RMS {w} ({p})", "{:.{d}f}"),
+    ("pred_err_max[{w}]", "pred err max {w} ({p})", "{:.{d}f}"),
 ]
 
 
@@ -44,10 +49,23 @@ def _fmt(v, spec):
 
 
 def _columns(stats):
+    p, v = stats.get("units", ("m", "m/s"))
+    d, d1 = (2, 1) if p == "m" else (5, 4)  # decimals: metres, or degrees
+    axes = stats.get("axes", AXES)
     cols = []
-    for key, title, spec in COLUMNS:
+
+    def add(key, title, spec, **kw):
+        key, title = key.format(**kw), title.format(p=p, v=v, **kw)
         if any(key in f["summary"] for f in stats["filters"].values()):
-            cols.append((key, title, spec))
+            cols.append((key, title, spec.replace("{d}", str(d)).replace("{d1}", str(d1))))
+
+    for key, title, spec in COLUMNS:
+        for a in axes if "{a}" in key else [None]:
+            add(key, title, spec, a=a)
+        if key == "pred_err_max":
+            for w in stats.get("windows", []):
+                for k2, t2, s2 in WINDOW_COLUMNS:
+                    add(k2, t2, s2, w=w)
     return cols
 
 
@@ -114,7 +132,7 @@ def _decimate(tree, stride):
 def stats_document(exp, res):
     from tracklab import __version__
 
-    st = statistics(res, exp.window)
+    st = statistics(res, exp.window, exp.pred_windows)
     stride = series_stride(res.steps)
     st = {
         "bounds": _decimate(st["bounds"], stride),
@@ -128,6 +146,9 @@ def stats_document(exp, res):
         "dt": res.dt,
         "window": list(exp.window),
         "series_stride": stride,  # series hold steps stride, 2·stride, … (summaries use every step)
+        "axes": list(res.axes),  # names of the reporting frame's position axes
+        "units": list(res.units),  # of position and velocity
+        "windows": [w for w in exp.pred_windows if w != REPORT_WINDOW],  # named prediction-error windows
         "wall_s": res.wall_s,
         "compile_s": res.compile_s,
         "experiment": exp.raw,
@@ -157,7 +178,7 @@ def _example(exp, res):
         return {}
     doc = {"truth": ex["truth"][1:], "estimates": ex["x"]}
     kinds = [s.kind for s in exp.sensor.sensors]
-    if kinds == ["cartesian"]:
+    if len(kinds) == 1 and kinds[0] in ("cartesian", "mount"):
         doc["measurements"] = ex["z"]
     return doc
 
@@ -205,7 +226,10 @@ def plot_figures(doc, folder: Path):
     t = dt * np.arange(stride, doc["steps"] + 1, stride)
     filters = doc["filters"]
     bounds = doc["bounds"]
-    dim = sum(1 for a in AXES if f"rmse_{a}" in next(iter(filters.values()))["series"])
+    axes_names = doc.get("axes", AXES)
+    pu, vu = doc.get("units", ("m", "m/s"))
+    dim = sum(1 for a in axes_names if f"rmse_{a}" in next(iter(filters.values()))["series"])
+    AX = axes_names
     title = f"{doc['name']} — {doc['runs']} runs"
 
     def arr(v):
@@ -215,11 +239,11 @@ def plot_figures(doc, folder: Path):
     fig, axes = plt.subplots(dim, 1, figsize=(8, 2.8 * dim), sharex=True)
     for a, ax in enumerate(np.atleast_1d(axes)):
         for label, f in filters.items():
-            ax.plot(t, arr(f["series"][f"rmse_{AXES[a]}"]), lw=1.2, label=label)
-        if f"pcrlb_{AXES[a]}" in bounds:
-            ax.plot(t, arr(bounds[f"pcrlb_{AXES[a]}"]), "k--", lw=1, label="PCRLB")
+            ax.plot(t, arr(f["series"][f"rmse_{AX[a]}"]), lw=1.2, label=label)
+        if f"pcrlb_{AX[a]}" in bounds:
+            ax.plot(t, arr(bounds[f"pcrlb_{AX[a]}"]), "k--", lw=1, label="PCRLB")
         ax.set_yscale("log")
-        ax.set_ylabel(f"RMSE {AXES[a]} (m)")
+        ax.set_ylabel(f"RMSE {AX[a]} ({pu})")
         ax.grid(True, which="both", alpha=0.3)
     np.atleast_1d(axes)[0].legend(fontsize=7, ncol=2)
     np.atleast_1d(axes)[0].set_title(title)
@@ -232,16 +256,34 @@ def plot_figures(doc, folder: Path):
     fig, axes = plt.subplots(dim, 1, figsize=(8, 2.8 * dim), sharex=True)
     for a, ax in enumerate(np.atleast_1d(axes)):
         for label, f in filters.items():
-            ax.plot(t, arr(f["series"][f"mean_err_{AXES[a]}"]), lw=1.2, label=label)
+            ax.plot(t, arr(f["series"][f"mean_err_{AX[a]}"]), lw=1.2, label=label)
         ax.axhline(0, color="k", lw=0.6)
-        ax.set_yscale("symlog", linthresh=1.0)  # small biases stay visible beside large ones
-        ax.set_ylabel(f"mean error {AXES[a]} (m)")
+        ax.set_yscale("symlog", linthresh=1.0 if pu == "m" else 1e-4)  # small biases stay visible beside large ones
+        ax.set_ylabel(f"mean error {AX[a]} ({pu})")
         ax.grid(True, alpha=0.3)
     np.atleast_1d(axes)[0].legend(fontsize=7, ncol=2)
     np.atleast_1d(axes)[0].set_title(title)
     np.atleast_1d(axes)[-1].set_xlabel("time (s)")
     fig.tight_layout()
     fig.savefig(folder / "mean_error.png", dpi=110)
+    plt.close(fig)
+
+    # one-step prediction error per axis (paper 004's Fig. 3), named windows shaded
+    fig, axes = plt.subplots(dim, 1, figsize=(8, 2.8 * dim), sharex=True)
+    for a, ax in enumerate(np.atleast_1d(axes)):
+        for label, f in filters.items():
+            ax.plot(t, arr(f["series"][f"pred_rmse_{AX[a]}"]), lw=1.2, label=label)
+        for w, (t0, t1) in _window_spans(doc).items():
+            ax.axvspan(t0, t1, color="0.9", zorder=0)
+            ax.text(0.5 * (t0 + t1), 1.0, w, transform=ax.get_xaxis_transform(), ha="center", va="bottom", fontsize=7)
+        ax.set_yscale("log")
+        ax.set_ylabel(f"one-step pred. RMS err {AX[a]} ({pu})")
+        ax.grid(True, which="both", alpha=0.3)
+    np.atleast_1d(axes)[0].legend(fontsize=7, ncol=2)
+    np.atleast_1d(axes)[-1].set_xlabel("time (s)")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(folder / "pred_error.png", dpi=110)
     plt.close(fig)
 
     example = doc.get("example_run") or {}
@@ -266,6 +308,12 @@ def plot_figures(doc, folder: Path):
     plt.close(fig)
 
 
+def _window_spans(doc):
+    """Named windows given as [t0, t1] in the experiment file (not "rest")."""
+    table = doc.get("experiment", {}).get("report", {}).get("windows", {})
+    return {w: v for w, v in table.items() if isinstance(v, list) and w in doc.get("windows", [])}
+
+
 def plot_example(doc, example, t, dim, folder: Path):
     """Run 0: true and estimated position and velocity, and their errors (paper 002 Figs. 4–7)."""
     import matplotlib.pyplot as plt
@@ -273,7 +321,9 @@ def plot_example(doc, example, t, dim, folder: Path):
     truth = np.asarray(example["truth"], float)
     est = {k: np.asarray(v, float) for k, v in example["estimates"].items()}
     z = np.asarray(example["measurements"], float) if "measurements" in example else None
-    names = [("position", "m", 0), ("velocity", "m/s", 1)]
+    pu, vu = doc.get("units", ("m", "m/s"))
+    AX = doc.get("axes", AXES)
+    names = [("position", pu, 0), ("velocity", vu, 1)]
     for kind in ("state", "error"):
         fig, axes = plt.subplots(2, dim, figsize=(5 * dim, 6), sharex=True, squeeze=False)
         for a in range(dim):
@@ -290,7 +340,7 @@ def plot_example(doc, example, t, dim, folder: Path):
                     for label, x in est.items():
                         ax.plot(t, x[:, col] - truth[:, col], lw=1, label=label)
                     ax.axhline(0, color="k", lw=0.6)
-                ax.set_ylabel(f"{q} {AXES[a]} ({unit})" if kind == "state" else f"{q} error {AXES[a]} ({unit})")
+                ax.set_ylabel(f"{q} {AX[a]} ({unit})" if kind == "state" else f"{q} error {AX[a]} ({unit})")
                 ax.grid(True, alpha=0.3)
         axes[0, 0].legend(fontsize=7)
         axes[0, 0].set_title(f"{doc['name']} — run 0")

@@ -7,7 +7,9 @@ batch of runs; the result is evaluated on held-out runs.
 
 Parameters are optimised in an unconstrained space:
 
-* ``q``, ``r``, ``lam`` (variances, tracking index): logarithms;
+* ``q``, ``r``, ``lam``, ``b``, ``q_e``, ``r_e``, ``r_guide`` (variances, the
+  tracking index, the STF's weakening factor): logarithms;
+* ``rho`` (the STF's forgetting factor, in (0, 1)): logit;
 * ``alpha``, ``beta`` (, ``gamma``): tuned together inside the α-β(-γ) stability
   region (Jury): α = 2σ(u), β = (4 − 2α)σ(v), γ = 4αβ/(2 − α)·σ(w), σ the logistic.
 
@@ -33,8 +35,9 @@ import optax
 from tracklab.engine import make_chunk_fn
 
 GAINS = ("alpha", "beta", "gamma")
-POSITIVE = ("q", "r", "lam")
-TUNABLE = POSITIVE + GAINS
+POSITIVE = ("q", "r", "lam", "b", "q_e", "r_e", "r_guide")
+UNIT = ("rho",)
+TUNABLE = POSITIVE + UNIT + GAINS
 
 
 def _window_mean(x, window):
@@ -48,7 +51,7 @@ def _safe_div(a, b):
 
 LOSSES: dict[str, Callable] = {
     "mse_pos": lambda s, w: _window_mean(_safe_div(jnp.sum(s["sumsq_pos"], -1), s["count"]), w),
-    "pred_mse": lambda s, w: _window_mean(_safe_div(s["sumsq_pred_pos"], s["count"]), w),
+    "pred_mse": lambda s, w: _window_mean(_safe_div(jnp.sum(s["sumsq_pred"], axis=-1), s["count"]), w),
     "nll": lambda s, w: _window_mean(0.5 * _safe_div(s["sum_nis"] + s["sum_logdet_s"], s["count_nis"]), w),
 }
 
@@ -59,6 +62,8 @@ def encode(params: dict, names) -> dict:
     for n in names:
         if n in POSITIVE:
             theta[n] = jnp.log(jnp.asarray(params[n], float))
+        elif n in UNIT:
+            theta[n] = jax.scipy.special.logit(jnp.minimum(jnp.asarray(params[n], float), 1.0 - 1e-6))
     gains = [g for g in GAINS if g in params]
     if any(g in names for g in GAINS):
         a = jnp.asarray(params["alpha"], float)
@@ -77,6 +82,9 @@ def decode(theta: dict, params: dict) -> dict:
     for n in POSITIVE:
         if n in theta:
             out[n] = jnp.exp(theta[n])
+    for n in UNIT:
+        if n in theta:
+            out[n] = jax.nn.sigmoid(theta[n])
     if "alpha" in theta:
         a = 2 * jax.nn.sigmoid(theta["alpha"])
         b = (4 - 2 * a) * jax.nn.sigmoid(theta["beta"])
@@ -204,9 +212,20 @@ def tuned_document(exp, result: TuneResult, out_path) -> dict:
             continue
         table["label"] = f"{fc.label}, tuned"
         if "q" in tuned:
-            key = "accel_sigma" if fc.model == "cv" else "accel_increment_sigma"
-            table[key] = math.sqrt(float(tuned["q"]))
-        if "r" in tuned:
+            if "q" in table:
+                table["q"] = float(tuned["q"])
+            else:
+                key = "accel_sigma" if fc.model == "cv" else "accel_increment_sigma"
+                table[key] = math.sqrt(float(tuned["q"]))
+        for k in ("rho", "b", "q_e"):
+            if k in tuned:
+                table[k] = float(tuned[k])
+        for k in ("r_e", "r_guide"):
+            if k in tuned:
+                table[k] = [float(v) for v in np.atleast_1d(tuned[k])]
+        if "r" in tuned and "r" in table:
+            table["r"] = [float(v) for v in np.atleast_1d(tuned["r"])]
+        elif "r" in tuned:
             _, meas = exp.view(fc)
             sig = [math.sqrt(v) for v in np.atleast_1d(tuned["r"])]
             if meas.kind == "cartesian":

@@ -119,7 +119,7 @@ def model_alpha_beta(model, sensor, params, gains="kalata", floor=None, conversi
     H = jnp.asarray(H)
     kalata = kalata_alpha_beta if order == 2 else kalata_alpha_beta_gamma
     growing = growing_memory_alpha_beta if order == 2 else growing_memory_alpha_beta_gamma
-    convert = None if sensor.kind == "cartesian" else CONVERSIONS[conversion]
+    convert = None if sensor.linear else CONVERSIONS[conversion]
 
     def current_gains(p, k):
         if gains == "kalata":

@@ -45,6 +45,8 @@ class Out(NamedTuple):
     its covariance in the filter's measurement space (components not used are
     zero in ``nu`` and decoupled with unit variance in ``S``); ``valid`` says
     whether an update happened and ``dof`` how many innovation components it used.
+    ``aux`` holds what a filter family adds (the strong tracking filter's fading
+    factor, an IMM's mode probabilities); ``None`` for the others.
     """
 
     x: jax.Array
@@ -54,6 +56,7 @@ class Out(NamedTuple):
     S: jax.Array
     valid: jax.Array
     dof: jax.Array
+    aux: Any = None
 
 
 class Filter(NamedTuple):

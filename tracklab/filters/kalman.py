@@ -132,9 +132,9 @@ def _h_state(model, sensor):
 
 
 def model_kf(model, sensor, params) -> Filter:
-    """KF with a linear (Cartesian position) sensor."""
+    """KF with linear sensors (each observes the frame's position; a suite stacks them)."""
     H = np.zeros((sensor.m, model.n))
-    H[np.arange(sensor.m), np.array(model.pos_idx)] = 1.0
+    H[np.arange(sensor.m), np.array(model.pos_idx)[np.arange(sensor.m) % model.dim]] = 1.0
     H = jnp.asarray(H)
 
     def update(p, g, z, present):

@@ -7,6 +7,10 @@ Kinds (z as a function of the position p):
   (REFERENCE_MATH §4; paper 002's laser, eq. 13).
 * ``angles`` (3-D): [az, el] (paper 002's infrared sensor, eq. 11).
 * ``cartesian`` (1-, 2- or 3-D): the position itself (the linear-Gaussian case).
+* ``mount``: an alt-azimuth mount's azimuth and elevation in degrees. It
+  observes the truth in the mount frame (``scenarios.MountFrame``), whose
+  "positions" are those angles, so its measurement is linear there; azimuth is
+  continuous (an axis encoder's reading, never wrapped at ±180°).
 
 Timing: a sensor reports at t = offset + j·period (j = 0, 1, …) on the
 experiment's grid of steps t_k = k·dt (k = 1 … steps); between reports its
@@ -47,8 +51,9 @@ def cartesian_h(p):
     return p
 
 
-_H = {"polar": polar_h, "spherical": spherical_h, "angles": angles_h, "cartesian": cartesian_h}
-_NAMES = {"polar": ("r", "angle"), "spherical": ("r", "az", "el"), "angles": ("az", "el")}
+_H = {"polar": polar_h, "spherical": spherical_h, "angles": angles_h, "cartesian": cartesian_h, "mount": cartesian_h}
+_NAMES = {"polar": ("r", "angle"), "spherical": ("r", "az", "el"), "angles": ("az", "el"), "mount": ("az_deg", "el_deg")}
+LINEAR_KINDS = ("cartesian", "mount")  # the measurement is the (frame's) position itself
 _ANGLES = ("angle", "az", "el")
 
 
@@ -85,6 +90,10 @@ class Sensor:
     @property
     def angle_mask(self) -> tuple[bool, ...]:
         return tuple(n in _ANGLES for n in self.names)
+
+    @property
+    def linear(self) -> bool:
+        return self.kind in LINEAR_KINDS
 
     @property
     def sensors(self) -> tuple["Sensor", ...]:
@@ -151,6 +160,10 @@ class SensorSuite:
     def p_detect(self) -> float:
         return min(s.p_detect for s in self.sensors)
 
+    @property
+    def linear(self) -> bool:
+        return all(s.linear for s in self.sensors)
+
     def columns(self, names) -> np.ndarray:
         """Column indices of the named sensors in the suite's z."""
         cols, start = {}, 0
@@ -185,4 +198,5 @@ SENSOR_KINDS = {
     "spherical": "3-D range, azimuth, elevation (laser): sigma_r (m), sigma_az, sigma_el (rad)",
     "angles": "3-D azimuth and elevation (infrared): sigma_az, sigma_el (rad)",
     "cartesian": "1-/2-/3-D position: sigma (m), one value or one per axis",
+    "mount": "alt-azimuth mount: azimuth and elevation (deg), sigma_az, sigma_el (deg); 3-D truth",
 }

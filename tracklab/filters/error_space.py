@@ -1,0 +1,117 @@
+"""Error-space estimation for synergic targets (paper 004, Cen Ming et al., §2.3).
+
+The target's observation Z is split into guide data L and guide error
+e = Z − L̂ (eqs. 10, 13). Two Kalman filters run together:
+
+* the guide-data filter: the target's motion model (eqs. 5–6) with L as its
+  observation, giving the filtered L̂(k+1) (step 4; filtered, never predicted);
+* the guide-error filter: its own model (eqs. 11–12) with e(k) as observation,
+  giving the prediction ê(k+1, k) (step 3);
+
+and the synthesis Ẑ(k+1, k) = L̂(k+1) + ê(k+1, k) (eq. 14, step 5) is the
+one-step prediction that drives the instrument.
+
+Guide data:
+
+* ``"previous"`` (the paper's "equivalent synergic target", eq. 3):
+  L(k+1) = Z(k), the instrument's own previous observation;
+* an external stream: a second sensor of the experiment, L(k+1) = Z_g(k − d)
+  (its reading d ≥ 0 periods old), e.g. a search radar handing over a noisier,
+  later track.
+
+Per step k, with L̂(k) and ê(k−1|k−1) carried from step k−1:
+
+    Ẑ(k, k−1) = H L̂(k) + H F_e ê(k−1|k−1)           reported as the prediction
+    e(k) = Z(k) − H L̂(k)                             (13)
+    ê(k|k) = KF update of F_e ê(k−1|k−1) with e(k)
+    L̂(k+1) = KF update of F L̂(k) with L(k+1)
+    x̂(k|k) = L̂(k) + ê(k|k)                          reported estimate
+
+Both filters work in the sensor's own (linear) coordinates: Cartesian
+positions, or a mount's azimuth and elevation. As the guide error of a
+guide delayed by n periods is e(t) = Z(t) − Z(t − nT), the error filter's state
+[e, ė, ë] adds to the guide's state, which is how the estimate and its rate are
+reported. Reported covariance: P_L + P_e (the two errors are correlated, which
+the method ignores, so NEES/NIS of this filter are indicative only). Priors:
+L̂ = F^{−(n−1)} x̂₀ and ê = (I − F^{−n}) x̂₀ from the experiment's prior, each
+with the prior covariance P₀ (conservative). Parameters {q, r, q_e, r_e,
+r_guide}: process and observation noise of the guide-data and the guide-error
+filters, and the guide's observation noise.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from tracklab.filters.core import Filter, Gaussian, Out, masked_kalman_update, symmetrise
+from tracklab.linalg import mm
+
+
+class ErrorSpaceState(NamedTuple):
+    L: Gaussian  # guide-data filter: L̂(k), the estimate of the guide at the coming step
+    E: Gaussian  # guide-error filter: ê(k−1|k−1)
+    queue: jax.Array  # (d, m) guide readings not yet due (oldest first)
+
+
+def _predict(F, Q, g):
+    return Gaussian(mm(F, g.x), symmetrise(mm(mm(F, g.P), F.T) + Q))
+
+
+def model_error_space(model, m: int, params, guide: str = "previous", delay: int = 0) -> Filter:
+    """Error-space estimator on a kinematic model observing its m position components.
+
+    The measurement the filter sees is Z (m values), or [Z, Z_g] (2m values)
+    with an external guide. ``delay``: how many periods older than the
+    one-period hand-over the external guide's readings are.
+    """
+    if model.dim != m:
+        raise ValueError(f"error_space needs a sensor observing the {model.dim} position components directly")
+    if guide == "previous" and delay:
+        raise ValueError("a delay applies to an external guide only")
+    n_lag = 1 + int(delay)  # L(k) is the target n_lag periods earlier
+    F = jnp.asarray(model.F)
+    H_np = np.zeros((m, model.n))
+    H_np[np.arange(m), np.array(model.pos_idx)] = 1.0
+    H = jnp.asarray(H_np)
+    F_inv = np.linalg.inv(model.F)
+    L_map = jnp.asarray(np.linalg.matrix_power(F_inv, n_lag - 1))
+    E_map = jnp.asarray(np.eye(model.n) - np.linalg.matrix_power(F_inv, n_lag))
+
+    def init(p, prior):
+        x0, P0 = jnp.asarray(prior.x), jnp.asarray(prior.P)
+        queue = jnp.full((int(delay), m), jnp.nan, x0.dtype)
+        return ErrorSpaceState(Gaussian(mm(L_map, x0), P0), Gaussian(mm(E_map, x0), P0), queue)
+
+    def step(p, s, meas):
+        raw = jnp.where(meas.valid, meas.z, jnp.nan)
+        z = raw[:m]
+        present = jnp.isfinite(z)
+        zm = jnp.where(present, z, 0.0)
+
+        # guide-error filter (steps 2-3): e(k) = Z(k) − L̂(k), eq. (13)
+        E_pred = _predict(F, model.Q(p["q_e"]), s.E)
+        x_pred = s.L.x + E_pred.x  # Ẑ(k, k−1) of eq. (14), made at step k−1
+        nu = zm - mm(H, x_pred)  # = e(k) − H ê(k|k−1)
+        ex, eP, nu, S = masked_kalman_update(E_pred.x, E_pred.P, nu, H, jnp.diag(p["r_e"]), present)
+        E_post = Gaussian(ex, eP)
+
+        # guide-data filter (step 4): L(k+1), filtered
+        g_now = z if guide == "previous" else raw[m:2 * m]
+        if delay:
+            g, queue = s.queue[0], jnp.concatenate([s.queue[1:], g_now[None]])
+        else:
+            g, queue = g_now, s.queue
+        g_present = jnp.isfinite(g)
+        L_pred = _predict(F, model.Q(p["q"]), s.L)
+        r_guide = p["r"] if guide == "previous" else p["r_guide"]
+        lx, lP, _, _ = masked_kalman_update(L_pred.x, L_pred.P, jnp.where(g_present, g, 0.0) - mm(H, L_pred.x),
+                                            H, jnp.diag(r_guide), g_present)
+        out = Out(x=s.L.x + E_post.x, P=s.L.P + E_post.P, x_pred=x_pred, nu=nu, S=S,
+                  valid=jnp.any(present), dof=jnp.sum(present))
+        return ErrorSpaceState(Gaussian(lx, lP), E_post, queue), out
+
+    return Filter(init=init, step=step, params=params)
