@@ -61,7 +61,7 @@ def test_table_formats(tmp_path):
     d = _experiments(tmp_path)
     folders = reproduce(d, tmp_path / "r", quick=True, log=lambda *a: None)
     md = combined_table(folders, "md", ("rmse_pos", "runs"))
-    assert md.splitlines()[0] == "| results | filter | RMSE pos (m) | runs |" and len(md.splitlines()) == 2 + 4
+    assert md.splitlines()[0] == "| results | filter | RMSE pos | runs |" and len(md.splitlines()) == 2 + 4
     csv = combined_table(folders, "csv", ("rmse_pos",))
     assert csv.splitlines()[0] == "results,filter,rmse_pos"
     tex = combined_table(folders, "latex", ("nees_in_bounds",))

@@ -319,14 +319,17 @@ def dump_toml(doc: dict) -> str:
             return "[" + ", ".join(value(x) for x in v) + "]"
         raise TypeError(f"cannot write {type(v).__name__} to TOML")
 
+    def key(k):
+        return k if re.fullmatch(r"[A-Za-z0-9_-]+", k) else json.dumps(k, ensure_ascii=False)
+
     def table(name, t, out):
         scalars = {k: v for k, v in t.items() if not isinstance(v, dict) and not _is_table_list(v)}
         out.append(f"[{name}]")
-        out += [f"{k} = {value(v)}" for k, v in scalars.items()]
+        out += [f"{key(k)} = {value(v)}" for k, v in scalars.items()]
         out.append("")
         for k, v in t.items():
             if isinstance(v, dict):
-                table(f"{name}.{k}", v, out)
+                table(f"{name}.{key(k)}", v, out)
 
     out = []
     for k, v in doc.items():
@@ -335,7 +338,7 @@ def dump_toml(doc: dict) -> str:
         elif _is_table_list(v):
             for item in v:
                 out.append(f"[[{k}]]")
-                out += [f"{kk} = {value(vv)}" for kk, vv in item.items()]
+                out += [f"{key(kk)} = {value(vv)}" for kk, vv in item.items()]
                 out.append("")
         else:
             out.insert(0, f"{k} = {value(v)}")

@@ -14,12 +14,14 @@ import json
 import math
 from pathlib import Path
 
-METRICS = {
-    "rmse_pos": ("RMSE pos (m)", "{:.2f}"),
-    "rmse_vel": ("RMSE vel (m/s)", "{:.2f}"),
-    "max_err_pos": ("max err pos (m)", "{:.1f}"),
-    "mean_err_x": ("mean err x (m)", "{:.2f}"),
-    "mean_err_y": ("mean err y (m)", "{:.2f}"),
+METRICS = {  # titles without units: the "unit" column gives each row's (m, or deg for a mount)
+    "unit": ("unit", "{}"),
+    "rmse_pos": ("RMSE pos", "auto"),
+    "rmse_vel": ("RMSE vel", "auto"),
+    "max_err_pos": ("max err pos", "auto"),
+    "pred_err_rms": ("pred err RMS", "auto"),
+    "mean_err_x": ("mean err x", "{:.2f}"),
+    "mean_err_y": ("mean err y", "{:.2f}"),
     "nees": ("NEES", "{:.2f}"),
     "nees_in_bounds": ("NEES in 95 %", "{:.0%}"),
     "rmse_pos_over_pcrlb": ("RMSE/PCRLB", "{:.3f}"),
@@ -41,6 +43,8 @@ def read_stats(folder) -> dict:
 def _cell(v, fmt):
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "—"
+    if fmt == "auto":  # metres to the centimetre; small values (degrees) to 3 significant digits
+        return f"{v:.2f}" if abs(v) >= 1 or v == 0 else f"{v:.3g}"
     if fmt == "{:d}":
         return str(int(v))
     return fmt.format(v)
@@ -51,7 +55,7 @@ def combined_rows(folders, metrics=DEFAULT_METRICS):
     for folder in folders:
         doc = read_stats(folder)
         for label, f in doc["filters"].items():
-            values = dict(f["summary"], wall_s=doc.get("wall_s"))
+            values = dict(f["summary"], wall_s=doc.get("wall_s"), unit=doc.get("units", ["m"])[0])
             rows.append([Path(folder).name, label] + [values.get(m) for m in metrics])
     return rows
 

@@ -3,7 +3,8 @@
 ``--grid q=0.01:100:9`` multiplies every filter's process-noise variance by 9
 log-spaced factors from 0.01 to 100 (``r`` likewise scales R): the noise-mismatch
 study of paper 001. Any numeric filter parameter (``q``, ``r``, ``lam``,
-``alpha``, ``beta``, ``gamma``) can be scaled. All grid points of a chunk of runs
+``alpha``, ``beta``, ``gamma``, the STF's ``rho`` and ``b``, the error-space
+``q_e``, ``r_e``, ``r_guide``) can be scaled. All grid points of a chunk of runs
 are one call, ``vmap``-ped over the grid; grid points and runs are processed in
 blocks so memory stays bounded. Run i uses the same random numbers at every grid
 point (common random numbers), so differences between points are the
@@ -30,7 +31,7 @@ from tracklab.metrics import statistics
 from tracklab.report import _jsonable, atomic_folder
 
 GRID_RE = re.compile(r"^([a-z_]+)=([^:]+):([^:]+):(\d+)$")
-SCALABLE = ("q", "r", "lam", "alpha", "beta", "gamma")
+SCALABLE = ("q", "r", "lam", "alpha", "beta", "gamma", "rho", "b", "q_e", "r_e", "r_guide")
 
 
 @dataclass(frozen=True)
@@ -59,7 +60,7 @@ def scaled(params: dict, factors: dict) -> dict:
 def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=None, progress=None):
     """Statistics of every filter at every grid point: {"points": [...], "stats": [statistics, ...]}."""
     specs = exp.filter_specs()
-    fn = make_chunk_fn(exp.scenario, exp.sensor, specs, exp.prior_covariance(), exp.dt)
+    fn = make_chunk_fn(exp.scenario, exp.sensor, specs, exp.prior_covariance(), exp.dt, exp.pred_windows)
     base = [s.filter.params for s in specs]
     runs = runs or exp.runs
     key = jax.random.key(exp.seed if seed is None else seed)
@@ -105,8 +106,10 @@ def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=
             sums={l: a.data for l, a in acc[j].items()},
             pcrlb=pcrlb(exp.scenario, exp.prior_covariance(), info[j] / runs),
             wall_s=wall, compile_s=0.0, labels=[s.label for s in specs], kinds={s.label: s.kind for s in specs},
+            axes=tuple(getattr(exp.scenario, "axes", ("x", "y", "z")[: exp.dim])),
+            units=tuple(getattr(exp.scenario, "units", ("m", "m/s"))),
         )
-        results.append({"factors": dict(zip(names, map(float, f))), "stats": statistics(res, exp.window)})
+        results.append({"factors": dict(zip(names, map(float, f))), "stats": statistics(res, exp.window, exp.pred_windows)})
     return {"axes": {a.name: a.values.tolist() for a in axes}, "points": results, "wall_s": wall, "runs": runs}
 
 
