@@ -69,3 +69,44 @@ def test_table_formats(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "tracklab.cli", "table", *map(str, folders), "--metrics", "nope"],
                           capture_output=True, text=True)
     assert proc.returncode == 2 and proc.stderr.startswith("error:") and "--metrics" in proc.stderr
+
+
+STUDIES = """
+
+[[study]]
+kind = "tune"
+params = ["q"]
+filters = ["KF"]
+loss = "nll"
+steps = 3
+lr = 0.1
+runs_per_step = 8
+out = "tuning/kf"
+
+[[study]]
+kind = "sweep"
+grid = ["q=0.1:10:3"]
+runs = 6
+out = "mismatch/c"
+"""
+
+
+def test_reproduce_rebuilds_the_studies_an_experiment_names(tmp_path):
+    """[[study]] tables: the tuned file, its log and its run; the sweep folder — all under results/."""
+    import tomllib
+
+    from tracklab.config import load_experiment
+
+    d = tmp_path / "experiments"
+    d.mkdir()
+    (d / "c.toml").write_text(textwrap.dedent(SMALL.replace("NAME", "c").replace("ALSO", "")) + STUDIES)
+    res = tmp_path / "results"
+    reproduce(d, res, log=lambda *a: None)
+    tuned = res / "tuning" / "kf_tuned.toml"
+    assert load_experiment(tuned).filters[0].label == "KF, tuned"
+    assert tomllib.loads(tuned.read_text())["filter"][0]["accel_sigma"] != 1.0
+    log = (res / "tuning" / "kf_tune.log").read_text()
+    assert "step     0" in log and "held-out nll" in log
+    assert (res / "tuning" / "kf_tuned" / "stats.json").exists()
+    sweep_table = (res / "mismatch" / "c" / "table.md").read_text()
+    assert sweep_table.count("| KF |") == 3 and sweep_table.count("| AB |") == 3

@@ -81,8 +81,9 @@ def cmd_list(args) -> int:
 def cmd_tune(args) -> int:
     import math
 
-    from tracklab.config import dump_toml, load_experiment
-    from tracklab.tune import LOSSES, TUNABLE, tune, tuned_document
+    from tracklab.config import load_experiment
+    from tracklab.studies import run_tune
+    from tracklab.tune import LOSSES, TUNABLE
 
     exp = load_experiment(args.experiment)
     names = [n.strip() for n in args.params.split(",") if n.strip()]
@@ -100,21 +101,8 @@ def cmd_tune(args) -> int:
         raise ConfigError(args.experiment, "--params", args.params, "no selected filter has any of these parameters")
     out = Path(args.out) if args.out else Path(args.experiment).with_name(Path(args.experiment).stem + "_tuned.toml")
 
-    def progress(k, loss, gnorm):
-        print(f"step {k:5d}  loss {loss:.6g}  |grad| {gnorm:.3g}", flush=True)
-
-    res = tune(exp, names, steps=args.steps, lr=args.lr, loss=args.loss, runs_per_step=args.runs_per_step,
-               labels=labels, every=args.every, progress=progress)
-    if res.stopped:
-        print(f"warning: {res.stopped}; keeping the last finite parameters", file=sys.stderr)
-    for label, p in res.params.items():
-        print(f"{label}: " + ", ".join(f"{k} {res.initial[label][k]} -> {v}" for k, v in p.items()))
-    print(f"held-out {args.loss}: {res.eval_initial:.6g} -> {res.eval_tuned:.6g}")
-    doc = tuned_document(exp, res, out)
-    tmp = out.with_name(f".{out.name}.tmp")
-    tmp.write_text("# written by tracklab tune\n" + dump_toml(doc))
-    tmp.replace(out)
-    print(f"tuned experiment written to {out}")
+    run_tune(exp, names, steps=args.steps, lr=args.lr, loss=args.loss, runs_per_step=args.runs_per_step,
+             labels=labels, out_toml=out, log=lambda line: print(line, flush=True), every=args.every)
     return 0
 
 

@@ -24,6 +24,7 @@ from tracklab.models import MODELS, cv
 from tracklab.metrics import REPORT_WINDOW
 from tracklab.scenarios import ConstantVelocity, Crossing, MountFrame, Overflight, Trajectory, TrajectoryError, read_csv
 from tracklab.sensors import SENSOR_KINDS, Sensor, SensorSuite
+from tracklab.studies import parse_studies
 
 MAX_RUNS = 100_000_000
 MAX_STEPS = 1_000_000
@@ -149,6 +150,7 @@ class Experiment:
     also_runs: tuple[int, ...] = ()
     precision: str = "float64"
     pred_windows: dict = field(default_factory=dict)  # name -> (steps,) bool mask, report window included
+    studies: list = field(default_factory=list)  # [[study]]: tuning and sweeps `tracklab reproduce` rebuilds
 
     @property
     def dim(self) -> int:
@@ -356,9 +358,9 @@ def load_experiment(path) -> Experiment:
     for sec in ("experiment", "scenario", "sensor"):
         if sec not in raw:
             raise ConfigError(f, f"[{sec}]", None, "section is required")
-    unknown = sorted(set(raw) - {"experiment", "scenario", "sensor", "filter", "prior", "report"})
+    unknown = sorted(set(raw) - {"experiment", "scenario", "sensor", "filter", "prior", "report", "study"})
     if unknown:
-        raise ConfigError(f, f"[{unknown[0]}]", "...", "unknown section (allowed: experiment, scenario, sensor, filter, prior, report)")
+        raise ConfigError(f, f"[{unknown[0]}]", "...", "unknown section (allowed: experiment, scenario, sensor, filter, prior, report, study)")
 
     ex = _Section(f, "experiment", raw["experiment"])
     name = ex.string("name", required=True)
@@ -478,11 +480,12 @@ def load_experiment(path) -> Experiment:
         raise ConfigError(f, "report.window", w, f"must be [first, last] steps with 1 <= first <= last <= {steps}")
     pred_windows = _pred_windows(f, rp.get("windows", {}), (w[0], w[1]), steps, dt)
     rp.check_unknown()
+    studies = parse_studies(f, raw.get("study"), _Section, filters)
 
     return Experiment(
         path=path, name=name, runs=runs, seed=seed, dt=dt, steps=steps, chunk=chunk, scenario=scenario,
         sensor=suite, filters=filters, prior=prior, window=(w[0], w[1]), raw=raw, also_runs=tuple(also), precision=precision,
-        pred_windows=pred_windows,
+        pred_windows=pred_windows, studies=studies,
     )
 
 

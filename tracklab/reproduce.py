@@ -2,8 +2,9 @@
 
 ``combined_table`` reads the ``stats.json`` of several results folders and
 puts every filter of every experiment in one table (Markdown, CSV or LaTeX).
-``reproduce`` runs every experiment file and rewrites the combined table
-between the markers in ``results/README.md``.
+``reproduce`` runs every experiment file (and the tuning and sweep studies it
+names in ``[[study]]`` tables) and rewrites the combined table between the
+markers in ``results/README.md``.
 """
 
 from __future__ import annotations
@@ -94,8 +95,9 @@ def update_readme(readme: Path, table: str):
 
 
 def reproduce(experiments_dir="experiments", results_dir="results", quick=False, log=print):
-    """Run every experiment file; return the results folders written, in order."""
+    """Run every experiment file and its studies; return the results folders written, in order."""
     from tracklab.config import load_experiment
+    from tracklab.studies import run_study
 
     files = sorted(Path(experiments_dir).glob("*.toml"))
     exps = [load_experiment(p) for p in files]  # every file validated before anything runs
@@ -109,5 +111,9 @@ def reproduce(experiments_dir="experiments", results_dir="results", quick=False,
         doc = exp.run(runs=runs, out=out)
         log(f"        {doc['wall_s']:.1f} s")
         folders.append(out)
+        if out == results_dir / exp.name:  # its tuning and sweep studies, once per experiment file
+            for study in exp.studies:
+                log(f"        study: {study.kind} -> {results_dir / study.out}")
+                run_study(exp, study, results_dir, quick=quick, log=log)
     update_readme(results_dir / "README.md", combined_table(folders))
     return folders

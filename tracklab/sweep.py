@@ -67,8 +67,10 @@ def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=
     points = list(itertools.product(*[a.values for a in axes]))
     names = [a.name for a in axes]
     P = len(points)
-    chunk = int(min(chunk or exp.chunk or 1000, runs))
-    block = int(block_points or max(1, min(P, 4000 // max(chunk, 1) or 1)))  # grid points per call
+    # memory per call grows with grid points × runs × steps: keep it near 10⁶ run-steps
+    budget = 1_000_000
+    chunk = int(min(chunk or exp.chunk or 1000, runs, max(16, budget // exp.steps)))
+    block = int(block_points or max(1, min(P, budget // (chunk * exp.steps))))  # grid points per call
 
     def point_params(f):
         factors = dict(zip(names, f))
@@ -110,7 +112,8 @@ def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=
             units=tuple(getattr(exp.scenario, "units", ("m", "m/s"))),
         )
         results.append({"factors": dict(zip(names, map(float, f))), "stats": statistics(res, exp.window, exp.pred_windows)})
-    return {"axes": {a.name: a.values.tolist() for a in axes}, "points": results, "wall_s": wall, "runs": runs}
+    return {"axes": {a.name: a.values.tolist() for a in axes}, "points": results, "wall_s": wall, "runs": runs,
+            "units": list(getattr(exp.scenario, "units", ("m", "m/s")))}
 
 
 def write_sweep(exp, doc, out, figures=True):
@@ -122,13 +125,15 @@ def write_sweep(exp, doc, out, figures=True):
 def _write_sweep(exp, doc, tmp, figures):
     names = list(doc["axes"])
     labels = list(doc["points"][0]["stats"]["filters"])
+    first = doc["points"][0]["stats"]["filters"][labels[0]]["summary"]
+    metrics = ["rmse_pos", "rmse_vel", "pred_err_rms"] + [k for k in first if k.startswith("pred_err_max[")]
+    metrics += ["nees", "nees_in_bounds"]
     rows = []
     for p in doc["points"]:
         for l in labels:
             s = p["stats"]["filters"][l]["summary"]
-            rows.append([*(p["factors"][n] for n in names), l, s["rmse_pos"], s["rmse_vel"], s["nees"],
-                         s["nees_in_bounds"], s["diverged"]])
-    header = [*(f"{n} x" for n in names), "filter", "rmse_pos", "rmse_vel", "nees", "nees_in_bounds", "diverged"]
+            rows.append([*(p["factors"][n] for n in names), l, *(s[m] for m in metrics), s["diverged"]])
+    header = [*(f"{n} x" for n in names), "filter", *metrics, "diverged"]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * len(header)) + "|"]
     for r in rows:
         cells = [f"{v:.4g}" for v in r[:len(names)]] + [r[len(names)]] + [f"{v:.4g}" for v in r[len(names) + 1:-1]] + [str(int(r[-1]))]
@@ -157,7 +162,9 @@ def _plot(doc, names, labels, folder):
     import matplotlib.pyplot as plt
 
     axes_vals = [np.asarray(doc["axes"][n]) for n in names]
-    for metric, title in (("rmse_pos", "time-averaged position RMSE (m)"), ("nees", "average NEES")):
+    unit = doc.get("units", ("m",))[0]
+    for metric, title in (("rmse_pos", f"time-averaged position RMSE ({unit})"), ("nees", "average NEES"),
+                          ("pred_err_rms", f"RMS one-step prediction error ({unit})")):
         fig, axs = plt.subplots(1, len(labels), figsize=(4.2 * len(labels), 3.6), squeeze=False)
         for ax, l in zip(axs[0], labels):
             vals = np.array([p["stats"]["filters"][l]["summary"][metric] for p in doc["points"]], float)

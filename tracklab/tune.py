@@ -201,6 +201,7 @@ def tuned_document(exp, result: TuneResult, out_path) -> dict:
     from tracklab.config import SENSOR_SIGMAS
 
     doc = copy.deepcopy(exp.raw)
+    doc.pop("study", None)  # the tuned file is a result: its studies stay with the original
     doc["experiment"]["name"] = f"{exp.name}_tuned"
     out_dir = Path(out_path).resolve().parent
     sc = doc.get("scenario", {})
