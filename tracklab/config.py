@@ -528,6 +528,44 @@ def _pred_windows(f, table, window, steps, dt):
     return {REPORT_WINDOW: report} | out
 
 
+def _imm_fields(f, i, fs, dim, default_q, r):
+    """[[filter]] fields of kind imm -> its parameters (and its models, turn-rate prior)."""
+    from tracklab.filters import IMM_MODELS, imm_params
+
+    models = fs.get("models", list(IMM_MODELS) if dim >= 2 else ["cv", "ca"])
+    if not isinstance(models, list) or not models or any(m not in IMM_MODELS for m in models) or len(set(models)) != len(models):
+        raise ConfigError(f, f"filter[{i}].models", models, f"must be a list of distinct models from: {', '.join(IMM_MODELS)}")
+    if "ct" in models and dim < 2:
+        raise ConfigError(f, f"filter[{i}].models", models, "the coordinated turn (ct) needs a 2-D or 3-D scenario")
+    cv_q = default_q**2 if default_q > 0 else 1.0
+    q = fs.get("q", [cv_q if m != "ca" else 0.1 * cv_q for m in models])
+    if (not isinstance(q, list) or len(q) != len(models)
+            or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= MAX_MAGNITUDE for v in q)):
+        raise ConfigError(f, f"filter[{i}].q", q, f"must be {len(models)} process-noise variances > 0, one per model")
+    q_turn = fs.number("q_turn", 1e-4, positive=True)
+    turn_sigma = fs.number("turn_rate_sigma", 0.1, positive=True)
+    k = len(models)
+    if fs.has("transition"):
+        if fs.has("p_stay"):
+            raise ConfigError(f, f"filter[{i}].p_stay", fs.get("p_stay"), "give either p_stay or transition, not both")
+        tm = fs.get("transition")
+        ok = isinstance(tm, list) and len(tm) == k and all(
+            isinstance(row, list) and len(row) == k
+            and all(not isinstance(v, bool) and isinstance(v, (int, float)) and 0 <= v <= 1 for v in row)
+            and abs(sum(row) - 1.0) < 1e-9 for row in tm)
+        if not ok:
+            raise ConfigError(f, f"filter[{i}].transition", tm, f"must be a {k}x{k} matrix of probabilities whose rows sum to 1")
+        matrix = np.array(tm, float)
+    else:
+        p_stay = fs.number("p_stay", 0.95)
+        if not 0.0 < p_stay <= 1.0 or (k > 1 and p_stay == 1.0):
+            raise ConfigError(f, f"filter[{i}].p_stay", p_stay, "must be a probability in (0, 1) (1 with one model)")
+        matrix = None
+    out = imm_params(models, q, q_turn, r, p_stay=p_stay if matrix is None else 0.95, transition_matrix=matrix)
+    out = {k: np.asarray(v).tolist() for k, v in out.items()}  # plain numbers, like every filter's parameters
+    return dict(out, models=models, turn_rate_sigma=turn_sigma)
+
+
 def _gain_value(fs, key, required=True):
     v = fs.get(key)
     if v is None:
@@ -581,14 +619,18 @@ def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q) -> Filter
         seen = "several sensors" if mkind == "suite" else f"a '{mkind}' sensor"
         raise ConfigError(f, f"filter[{i}].kind", fkind, f"needs a sensor of kind {' or '.join(ok)}, but sees {seen}")
 
-    model = fs.string("model", "ca" if fkind == "alpha_beta_gamma" else "cv", choices=tuple(MODELS))
+    if fkind == "imm" and fs.has("model"):
+        raise ConfigError(f, f"filter[{i}].model", fs.get("model"), "imm has its own models: use models = [\"cv\", \"ca\", \"ct\"]")
+    model = "ca" if fkind == "imm" else fs.string("model", "ca" if fkind == "alpha_beta_gamma" else "cv", choices=tuple(MODELS))
     if fkind == "polar_kf" and model != "cv":
         raise ConfigError(f, f"filter[{i}].model", model, "polar_kf has its own polar CV state: use model = \"cv\"")
     if fkind == "alpha_beta" and model != "cv" or fkind == "alpha_beta_gamma" and model != "ca":
         need = "cv" if fkind == "alpha_beta" else "ca"
         raise ConfigError(f, f"filter[{i}].model", model, f"{fkind} works on the {need} model")
     sigma_key = "accel_sigma" if model == "cv" else "accel_increment_sigma"
-    if fs.has("q"):  # the process-noise variance itself (a paper's q)
+    if fkind == "imm":
+        q = None  # one per model, below
+    elif fs.has("q"):  # the process-noise variance itself (a paper's q)
         if fs.has(sigma_key):
             raise ConfigError(f, f"filter[{i}].q", fs.get("q"), f"give either q or {sigma_key}, not both")
         q = fs.number("q", positive=True)
@@ -596,7 +638,7 @@ def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q) -> Filter
         q = fs.number("accel_sigma", default_q if default_q > 0 else 1.0, positive=True) ** 2
     else:
         q = fs.number("accel_increment_sigma", 1.0, positive=True) ** 2
-    sigma_v = math.sqrt(q)
+    sigma_v = math.sqrt(q) if q is not None else None
 
     options = {}
     if fkind == "cmkf":
@@ -624,6 +666,10 @@ def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q) -> Filter
         r = tuple(fs.number(k, sv, positive=True) ** 2 for k, sv in zip(SENSOR_SIGMAS[mkind], meas.sigma))
     params = {"q": q, "r": r}
 
+    if fkind == "imm":
+        params.update(_imm_fields(f, i, fs, dim, default_q, r))
+        options["models"] = tuple(params.pop("models"))
+        options["turn_rate_sigma"] = params.pop("turn_rate_sigma")
     if fkind == "stf":
         params["rho"] = fs.number("rho", 0.95)
         if not 0.0 < params["rho"] <= 1.0:

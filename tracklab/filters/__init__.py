@@ -20,6 +20,7 @@ from tracklab.filters.kalman import (
     noise_params,
 )
 from tracklab.filters.error_space import model_error_space
+from tracklab.filters.imm import IMM_MODELS, imm_params, model_imm
 from tracklab.filters.polar import model_polar_kf
 from tracklab.filters.strong_tracking import model_stf, strong_tracking
 from tracklab.filters.unscented import model_ukf
@@ -35,6 +36,8 @@ FILTER_KINDS = {
     "alpha_beta": ("α-β filter; gains = kalata | growing_memory | explicit alpha, beta", ("cartesian", "mount", "polar", "spherical")),
     "alpha_beta_gamma": ("α-β-γ filter; gains = kalata | growing_memory | explicit", ("cartesian", "mount", "polar", "spherical")),
     "stf": ("strong tracking filter (Zhou): fading factor, forgetting rho, weakening b; extended on nonlinear sensors",
+            ("polar", "spherical", "angles", "cartesian", "mount", "suite")),
+    "imm": ("interacting multiple models over cv / ca / ct (coordinated turn); mode probabilities in aux",
             ("polar", "spherical", "angles", "cartesian", "mount", "suite")),
     "error_space": ("error-space estimator (paper 004): guide-data and guide-error KFs; guide = previous | a sensor",
                     ("cartesian", "mount")),
@@ -59,6 +62,9 @@ def build(kind, model, sensor, params, options=None) -> Filter:
                          options.get("ut_kappa", 0.0))
     if kind == "stf":
         return model_stf(model, sensor, params)
+    if kind == "imm":
+        return model_imm(model.dim, float(model.F[0, 1]), sensor, params, tuple(options.get("models", IMM_MODELS)),
+                         options.get("turn_rate_sigma", 0.1))
     if kind == "error_space":
         guide = options.get("guide", "previous")
         m = sensor.m if guide == "previous" else sensor.m // 2
@@ -74,6 +80,6 @@ def build(kind, model, sensor, params, options=None) -> Filter:
 __all__ = [
     "FILTER_KINDS", "Filter", "Gaussian", "Meas", "Out", "Prior", "build", "ekf", "gaussian_filter",
     "growing_memory_alpha_beta", "growing_memory_alpha_beta_gamma", "kalata_alpha_beta", "kalata_alpha_beta_gamma",
-    "kalman_update", "kf", "model_alpha_beta", "model_error_space", "model_stf", "model_ukf", "noise_params",
+    "imm_params", "kalman_update", "kf", "model_alpha_beta", "model_error_space", "model_imm", "model_stf", "model_ukf", "noise_params",
     "strong_tracking", "tracking_index", "wrap_angle",
 ]
