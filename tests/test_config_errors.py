@@ -342,6 +342,18 @@ CASES = [
     case("window-reserved-name", windows('window = [1.0, 2.0]'), "report.windows.window", "window", "not 'window'"),
     case("window-nan", windows('a = [nan, 2.0]'), "report.windows.a", "nan", "seconds"),
     case("windows-not-a-table", to_toml(mount(report={"windows": [1, 2]})), "report.windows", "[1, 2]", "table"),
+    # --- imm ---------------------------------------------------------------------------------------
+    case("imm-unknown-model", plus_filter(kind="imm", models=["cv", "singer"]), "filter[2].models", "['cv', 'singer']",
+         "cv, ca, ct"),
+    case("imm-model-twice", plus_filter(kind="imm", models=["cv", "cv"]), "filter[2].models", "['cv', 'cv']", "distinct"),
+    case("imm-q-per-model", plus_filter(kind="imm", models=["cv", "ct"], q=[1.0]), "filter[2].q", "[1.0]", "one per model"),
+    case("imm-q-negative", plus_filter(kind="imm", models=["cv", "ct"], q=[1.0, -1.0]), "filter[2].q", "[1.0, -1.0]", "> 0"),
+    case("imm-transition-rows", plus_filter(kind="imm", models=["cv", "ct"], transition=[[0.9, 0.2], [0.1, 0.9]]),
+         "filter[2].transition", "[[0.9, 0.2], [0.1, 0.9]]", "rows sum to 1"),
+    case("imm-p-stay-1", plus_filter(kind="imm", models=["cv", "ct"], p_stay=1.0), "filter[2].p_stay", "1.0", "(0, 1)"),
+    case("imm-with-model-field", plus_filter(kind="imm", model="cv"), "filter[2].model", "cv", "its own models"),
+    case("imm-ct-on-1d", edit(TRAJ, scenario={"kind": "constant_velocity", "initial": [0.0, 1.0]},
+                              filter=[{"kind": "imm", "models": ["cv", "ct"]}]), "filter[1].models", "['cv', 'ct']", "2-D or 3-D"),
     # --- [[study]] tables: tuning and sweeps that reproduce rebuilds ----------------------------
     case("study-unknown-kind", edit(study=[{"kind": "grid", "out": "x"}]), "study[1].kind", "grid", "tune, sweep"),
     case("study-out-escapes", edit(study=[{"kind": "sweep", "grid": ["q=0.1:10:3"], "out": "../elsewhere"}]),

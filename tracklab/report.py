@@ -289,6 +289,8 @@ def plot_figures(doc, folder: Path):
     example = doc.get("example_run") or {}
     if example:
         plot_example(doc, example, t, dim, folder)
+        if dim >= 2 and pu == "m":
+            plot_track(doc, example, folder)
 
     # average NEES with its 95 % interval
     fig, ax = plt.subplots(figsize=(8, 3.5))
@@ -305,6 +307,44 @@ def plot_figures(doc, folder: Path):
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
     fig.savefig(folder / "nees.png", dpi=110)
+    plt.close(fig)
+
+
+def plot_track(doc, example, folder: Path):
+    """The true path seen from above, coloured by each filter's per-step position RMSE (errors along the path)."""
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+
+    truth = np.asarray(example["truth"], float)
+    xy = truth[:, [0, 2]] / 1000.0
+    filters = doc["filters"]
+    vals = {label: np.array([np.nan if v is None else v for v in f["series"]["rmse_pos"]], float)
+            for label, f in filters.items()}
+    finite = np.concatenate([v[np.isfinite(v)] for v in vals.values()])
+    lo, hi = (np.percentile(finite, 2), np.percentile(finite, 98)) if finite.size else (1.0, 10.0)
+    norm = plt.Normalize(max(lo, 0.0), max(hi, lo + 1e-9))
+    k = len(filters)
+    cols = min(k, 3)
+    rows = -(-k // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.8 * rows), squeeze=False, constrained_layout=True)
+    seg = np.stack([xy[:-1], xy[1:]], axis=1)
+    for ax, (label, v) in zip(axes.flat, vals.items()):
+        lc = LineCollection(seg, cmap="viridis", norm=norm, linewidths=2.5)
+        lc.set_array(v[1:])
+        ax.add_collection(lc)
+        ax.plot([0], [0], "k^", ms=7)  # the sensor
+        ax.autoscale()
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_title(f"{label}: RMSE {filters[label]['summary']['rmse_pos']:.1f} m", fontsize=8)
+        ax.set_xlabel("east (km)", fontsize=8)
+        ax.set_ylabel("north (km)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(True, alpha=0.3)
+    for ax in list(axes.flat)[k:]:
+        ax.axis("off")
+    fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap="viridis"), ax=axes, shrink=0.8, label="position RMSE (m)")
+    fig.suptitle(f"{doc['name']} — {doc['runs']} runs: error along the path", fontsize=10)
+    fig.savefig(folder / "track.png", dpi=110)
     plt.close(fig)
 
 
