@@ -1,0 +1,9 @@
+"""Servo loops of an electro-optical theodolite (paper 003): transfer functions, discretisation, tracking."""
+
+from tracklab.servo.loops import MODES, AzimuthAxis, Estimator, closed_position_loop, sine_target, track
+from tracklab.servo.transfer import DiscreteSystem, TransferFunction, discretise, discretise_state_space
+
+__all__ = [
+    "MODES", "AzimuthAxis", "DiscreteSystem", "Estimator", "TransferFunction", "closed_position_loop", "discretise",
+    "discretise_state_space", "sine_target", "track",
+]
