@@ -213,6 +213,32 @@ def track(axis: AzimuthAxis, mode: str, target: Callable, frames: int, key, *, e
     return {"t": t, "target": tg, "encoder": enc, "error": err, "rate_error": rate_err}
 
 
+def kalman_estimator(frame_dt: float, sigma: float, q: float) -> Estimator:
+    """The baseline: a CA-model Kalman filter on the measured angle, predicting n frames ahead with Φⁿ."""
+    from tracklab.filters import build, noise_params
+    from tracklab.models import ca
+    from tracklab.sensors import Sensor
+
+    model = ca(1, frame_dt)
+    flt = build("kf", model, Sensor("cartesian", 1, (sigma,)), noise_params(q, np.array([sigma**2])))
+    F = jnp.asarray(model.F)
+
+    def ahead(params, state, out, n):
+        return jnp.linalg.matrix_power(F, n) @ state.x
+
+    return Estimator(flt, ahead)
+
+
+def dekf_estimator(net, params) -> Estimator:
+    """The dual EKF of paper 003, predicting n frames ahead with the network (eq. 17)."""
+    from tracklab.filters.dual_ekf import dual_ekf, predict_ahead
+
+    def ahead(p, state, out, n):
+        return predict_ahead(net, state.x, state.w, n)
+
+    return Estimator(dual_ekf(net, params), ahead, params)
+
+
 def sine_target(amplitude, omega):
     """θ = A sin(ωt) (paper 003: 83.33° sin 0.6t), with its rate and acceleration."""
 
