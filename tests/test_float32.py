@@ -23,7 +23,7 @@ def _distinct_experiments():
     seen, out = set(), []
     for p in sorted(Path(__file__).resolve().parents[1].joinpath("experiments").glob("*.toml")):
         raw = tomllib.loads(p.read_text())
-        if p.stem.startswith("tuning_"):
+        if p.stem.startswith("tuning_") or "servo" in raw:  # servo loops: tests/test_servo.py
             continue
         sensors = raw["sensor"] if isinstance(raw["sensor"], list) else [raw["sensor"]]
         signature = (raw["scenario"]["kind"], tuple(s["kind"] for s in sensors),

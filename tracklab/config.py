@@ -355,6 +355,10 @@ def load_experiment(path) -> Experiment:
     path = Path(path)
     raw = _read_toml(path)
     f = path
+    if isinstance(raw, dict) and "servo" in raw:  # a closed-loop servo experiment (paper 003)
+        from tracklab.servo.experiment import load_servo_experiment
+
+        return load_servo_experiment(path, raw, _Section)
     for sec in ("experiment", "scenario", "sensor"):
         if sec not in raw:
             raise ConfigError(f, f"[{sec}]", None, "section is required")

@@ -1,0 +1,385 @@
+"""Servo experiments (paper 003): an experiment file with a ``[servo]`` section.
+
+```toml
+[experiment]
+name = "dekf_on_axis"
+runs = 100                     # Monte-Carlo runs: miss-distance noise differs
+seed = 0
+
+[servo]
+frames = 3000                  # camera frames (100 Hz: 30 s)
+frame_dt = 0.01                # s; the servo ticks at frame_dt / frame_ticks
+frame_ticks = 10
+delay = 2                      # frames between exposure and delivery (paper: two)
+noise = 10.0                   # arcsec, miss-distance noise (ours: the paper gives none)
+settle = 15.0                  # s left out of the statistics
+accel_ff = 0.0                 # on_axis: acceleration feed-forward gain (s)
+
+[target]
+kind = "sine"                  # amplitude (deg), omega (rad/s); or "cone": half_angle,
+amplitude = 83.33              # axis_elevation (deg), period (s)
+omega = 0.6
+
+[[estimator]]                  # what velocity_lag / on_axis get their target angle and rate from
+label = "KF"
+kind = "kf"                    # kf (CA model) | dekf (dual EKF, paper 003)
+q = 1.0                        # acceleration-increment variance per frame, (deg/s²)²
+
+[[case]]
+mode = "on_axis"               # double_loop | velocity_lag | on_axis
+estimator = "KF"               # none for double_loop; "perfect" = the true target
+```
+
+Statistics per case over the runs, after ``settle``: the maximum tracking
+error (′; the mean over runs of each run's largest |target − boresight|, and
+the worst run), the random error (″; the RMS of the error left after a
+least-squares fit of the target's first three harmonics and a constant, per
+run, averaged over runs) and the estimator's largest rate error (°/s).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from tracklab.errors import ConfigError
+
+ESTIMATOR_KINDS = ("kf", "dekf")
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    label: str
+    kind: str
+    q: float
+    hidden: int = 4
+    reading: str = "residual"
+    lam: float = 0.999
+    r_e: float = 0.5
+    pw0: float = 1e-4
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class Case:
+    label: str
+    mode: str
+    estimator: str | None  # a label, "perfect" or None
+
+
+@dataclass
+class ServoExperiment:
+    path: Path
+    name: str
+    runs: int
+    seed: int
+    frames: int
+    frame_dt: float
+    frame_ticks: int
+    delay: int
+    noise: float  # arcsec
+    settle: float
+    accel_ff: float
+    target: dict
+    estimators: list[EstimatorConfig]
+    cases: list[Case]
+    raw: dict
+    also_runs: tuple[int, ...] = ()
+    studies: list = field(default_factory=list)
+    precision: str = "float64"
+
+    @property
+    def steps(self) -> int:
+        return self.frames
+
+    @property
+    def window(self):
+        return (1, self.frames)
+
+    def target_fn(self):
+        from tracklab.servo.loops import sine_target
+
+        t = self.target
+        if t["kind"] == "sine":
+            return sine_target(t["amplitude"], t["omega"])
+        return cone_target(t["half_angle"], t["axis_elevation"], t["period"])
+
+    def target_omega(self) -> float:
+        t = self.target
+        return t["omega"] if t["kind"] == "sine" else 2 * math.pi / t["period"]
+
+    def build_estimator(self, cfg: EstimatorConfig):
+        import jax
+
+        from tracklab.filters.dual_ekf import Network, dekf_params
+        from tracklab.servo.loops import dekf_estimator, kalman_estimator
+
+        sigma = max(self.noise, 1e-3) / 3600.0
+        if cfg.kind == "kf":
+            return kalman_estimator(self.frame_dt, sigma, cfg.q)
+        scale = self.target_scale()
+        net = Network(cfg.hidden, scale, self.frame_dt, cfg.reading == "residual")
+        p = dekf_params(net, q=cfg.q, r=sigma**2, lam=cfg.lam, r_e=cfg.r_e, pw0=cfg.pw0, key=jax.random.key(cfg.seed))
+        return dekf_estimator(net, p)
+
+    def target_scale(self):
+        """Typical |θ|, |θ̇|, |θ̈| of the target (the network's input scaling)."""
+        import jax.numpy as jnp
+
+        f = self.target_fn()
+        t = jnp.linspace(0.0, self.frames * self.frame_dt, 2001)
+        vals = np.abs(np.asarray(jax_vmap(f)(t)))
+        return tuple(float(max(v, 1e-6)) for v in vals.max(axis=0))
+
+    def prior(self):
+        import jax.numpy as jnp
+
+        from tracklab.filters.core import Prior
+
+        x0 = jnp.asarray(np.asarray(self.target_fn()(0.0)))
+        return Prior(x0, jnp.diag(jnp.array([(self.noise / 3600.0) ** 2 * 4, 1.0, 1.0])))
+
+    def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None):
+        from tracklab.report import atomic_folder, results_folder
+
+        out = results_folder(self, out)
+        doc = self.simulate(runs or self.runs, self.seed if seed is None else seed, progress)
+        with atomic_folder(out) as tmp:
+            write_servo_results(doc, tmp, figures)
+        return doc
+
+    def simulate(self, runs, seed, progress=None):
+        import jax
+        import jax.numpy as jnp
+
+        from tracklab.servo.loops import AzimuthAxis, track
+
+        axis = AzimuthAxis(dt=self.frame_dt / self.frame_ticks)
+        target = self.target_fn()
+        ests = {e.label: self.build_estimator(e) for e in self.estimators}
+        prior = self.prior()
+        T = axis.dt
+        n_ticks = self.frames * self.frame_ticks
+        t = T * np.arange(n_ticks)
+        late = t >= self.settle
+        w = self.target_omega()
+        basis = np.stack([np.ones_like(t)] + [f(k * w * t) for k in (1, 2, 3) for f in (np.sin, np.cos)], -1)[late]
+        pinv = np.linalg.pinv(basis)
+        frame_late = (self.frame_dt * np.arange(self.frames)) >= self.settle
+        keys = jax.random.split(jax.random.key(seed), runs)
+        cases, examples = {}, {}
+        t_start = time.perf_counter()
+        compile_s = 0.0
+        for ci, case in enumerate(self.cases):
+            est = ests.get(case.estimator) if case.estimator not in (None, "perfect") else None
+
+            def one(key, case=case, est=est):
+                r = track(axis, case.mode, target, self.frames, key, estimator=est, prior=prior,
+                          frame_ticks=self.frame_ticks, delay=self.delay, noise=self.noise / 3600.0,
+                          accel_ff=self.accel_ff, perfect=case.estimator == "perfect")
+                e = r["error"][late]
+                resid = e - jnp.asarray(basis) @ (jnp.asarray(pinv) @ e)
+                rate = jnp.where(jnp.asarray(frame_late), jnp.abs(r["rate_error"]), 0.0)
+                return jnp.max(jnp.abs(e)), jnp.sqrt(jnp.mean(resid**2)), jnp.max(rate), r["error"], r["rate_error"]
+
+            fn = jax.jit(jax.vmap(one))
+            chunk = 50
+            parts = []
+            for c in range(0, runs, chunk):
+                t0 = time.perf_counter()
+                res = jax.device_get(fn(keys[c:c + chunk]))
+                if c == 0 and ci == 0:
+                    compile_s = time.perf_counter() - t0
+                if c == 0:
+                    examples[case.label] = {"error": res[3][0], "rate_error": res[4][0]}
+                parts.append([np.asarray(a) for a in res[:3]])
+                if progress:
+                    progress(ci * runs + min(c + chunk, runs), len(self.cases) * runs)
+            mx, rnd, rate = (np.concatenate([p[i] for p in parts]) for i in range(3))
+            summary = {
+                "max_track_err": float(np.mean(mx) * 60.0),  # arcmin
+                "max_track_err_worst": float(np.max(mx) * 60.0),
+                "random_err": float(np.mean(rnd) * 3600.0),  # arcsec
+                "max_rate_err": float(np.mean(rate)) if est is not None else float("nan"),
+                "diverged": int(np.sum(~np.isfinite(mx))),
+                "runs": int(runs),
+            }
+            cases[case.label] = {"kind": case.mode, "label": case.label, "estimator": case.estimator,
+                                 "summary": summary, "series": {}}
+        wall = time.perf_counter() - t_start
+        stride = max(1, n_ticks // 3000)
+        return {
+            "name": self.name, "runs": runs, "steps": self.frames, "dt": self.frame_dt, "series_stride": 1,
+            "window": [1, self.frames], "wall_s": wall, "compile_s": compile_s, "experiment": self.raw,
+            "units": ["deg", "deg/s"], "axes": ["az"],
+            "filters": cases,
+            "example_run": {"t": t[::stride], "error": {k: v["error"][::stride] for k, v in examples.items()},
+                            "t_frames": self.frame_dt * np.arange(self.frames),
+                            "rate_error": {k: v["rate_error"] for k, v in examples.items()
+                                           if self._case(k).estimator not in (None, "perfect")}},
+        }
+
+    def _case(self, label):
+        return next(c for c in self.cases if c.label == label)
+
+
+def jax_vmap(f):
+    import jax
+
+    return jax.vmap(f)
+
+
+def cone_target(half_angle, axis_elevation, period):
+    """Azimuth of a point circling a cone (the dynamic-target rig): θ, θ̇, θ̈ in degrees."""
+    import jax
+    import jax.numpy as jnp
+
+    b, e = math.radians(half_angle), math.radians(axis_elevation)
+    a = jnp.array([0.0, math.cos(e), math.sin(e)])  # axis towards north at elevation e
+    e1 = jnp.array([1.0, 0.0, 0.0])
+    e2 = jnp.cross(a, e1)
+    w = 2 * math.pi / period
+
+    def az(t):
+        d = math.cos(b) * a + math.sin(b) * (jnp.cos(w * t) * e1 + jnp.sin(w * t) * e2)
+        return jnp.degrees(jnp.arctan2(d[0], d[1]))
+
+    d1 = jax.grad(az)
+    d2 = jax.grad(d1)
+
+    def target(t):
+        t = jnp.asarray(t, float)
+        return jnp.stack([az(t), d1(t), d2(t)])
+
+    return target
+
+
+def write_servo_results(doc, folder: Path, figures=True):
+    from tracklab.report import _jsonable, csv_table, markdown_table
+
+    (folder / "stats.json").write_text(json.dumps(_jsonable(doc), separators=(",", ":"), allow_nan=False) + "\n")
+    (folder / "table.md").write_text(markdown_table(doc))
+    (folder / "table.csv").write_text(csv_table(doc))
+    if not figures:
+        return
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ex = doc["example_run"]
+    t = np.asarray(ex["t"])
+    fig, ax = plt.subplots(figsize=(9, 4))
+    for label, e in ex["error"].items():
+        ax.plot(t, 60.0 * np.asarray(e), lw=0.8, label=label)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("tracking error (′)")
+    ax.set_title(f"{doc['name']} — run 0 (paper 003 Figs. 5–7)")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(folder / "tracking_error.png", dpi=110)
+    plt.close(fig)
+    if ex["rate_error"]:
+        fig, ax = plt.subplots(figsize=(9, 3.5))
+        tf = np.asarray(ex["t_frames"])
+        for label, e in ex["rate_error"].items():
+            ax.plot(tf, np.asarray(e), lw=0.8, label=label)
+        ax.set_xlabel("time (s)")
+        ax.set_ylabel("rate-estimate error (°/s)")
+        ax.set_title(f"{doc['name']} — run 0 (paper 003 Fig. 4)")
+        ax.set_ylim(-1, 1)
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(folder / "rate_error.png", dpi=110)
+        plt.close(fig)
+
+
+def load_servo_experiment(f: Path, raw: dict, section) -> ServoExperiment:
+    """Validate a servo experiment file (``section``: config's typed table reader)."""
+    from tracklab.config import MAX_RUNS, NAME_RE
+    from tracklab.servo.loops import MODES
+
+    unknown = sorted(set(raw) - {"experiment", "servo", "target", "estimator", "case"})
+    if unknown:
+        raise ConfigError(f, f"[{unknown[0]}]", "...", "unknown section in a servo experiment (allowed: experiment, servo, target, estimator, case)")
+    for sec in ("experiment", "target", "case"):
+        if sec not in raw:
+            raise ConfigError(f, f"[{sec}]", None, "section is required in a servo experiment")
+    ex = section(f, "experiment", raw["experiment"])
+    name = ex.string("name", required=True)
+    if not NAME_RE.fullmatch(name):
+        raise ConfigError(f, "experiment.name", name, "must be 1-100 characters of letters, digits, '_', '.', '-'")
+    runs = ex.integer("runs", required=True, lo=1, hi=MAX_RUNS)
+    seed = ex.integer("seed", 0, lo=0, hi=2**32 - 1)
+    ex.get("description")
+    ex.check_unknown()
+    sv = section(f, "servo", raw["servo"])
+    frames = sv.integer("frames", 3000, lo=10, hi=10_000_000)
+    frame_dt = sv.number("frame_dt", 0.01, positive=True)
+    frame_ticks = sv.integer("frame_ticks", 10, lo=1, hi=1000)
+    delay = sv.integer("delay", 2, lo=1, hi=100)
+    noise = sv.number("noise", 10.0, nonneg=True)
+    settle = sv.number("settle", 15.0, nonneg=True)
+    if settle >= frames * frame_dt:
+        raise ConfigError(f, "servo.settle", settle, f"must be shorter than the run ({frames * frame_dt:g} s)")
+    accel_ff = sv.number("accel_ff", 0.0, nonneg=True)
+    sv.check_unknown()
+    tg = section(f, "target", raw["target"])
+    kind = tg.string("kind", required=True, choices=("sine", "cone"))
+    if kind == "sine":
+        target = {"kind": kind, "amplitude": tg.number("amplitude", 83.33, positive=True),
+                  "omega": tg.number("omega", 0.6, positive=True)}
+    else:
+        target = {"kind": kind, "half_angle": tg.number("half_angle", 13.5, positive=True, hi=80.0),
+                  "axis_elevation": tg.number("axis_elevation", 26.0, lo=0.0, hi=80.0),
+                  "period": tg.number("period", 4.5, positive=True)}
+    tg.check_unknown()
+    estimators, labels = [], set()
+    tables = raw.get("estimator", [])
+    if not isinstance(tables, list):
+        raise ConfigError(f, "[[estimator]]", tables, "must be [[estimator]] tables")
+    for i, table in enumerate(tables, start=1):
+        es = section(f, f"estimator[{i}]", table)
+        ekind = es.string("kind", required=True, choices=ESTIMATOR_KINDS)
+        label = es.string("label", ekind)
+        if label in labels or label == "perfect":
+            raise ConfigError(f, f"estimator[{i}].label", label, "must be unique (and not 'perfect')")
+        labels.add(label)
+        cfg = EstimatorConfig(label, ekind, es.number("q", 1.0, positive=True))
+        if ekind == "dekf":
+            lam = es.number("lam", 0.999)
+            if not 0.0 < lam <= 1.0:
+                raise ConfigError(f, f"estimator[{i}].lam", lam, "the forgetting factor must be in (0, 1]")
+            cfg = EstimatorConfig(label, ekind, cfg.q, es.integer("hidden", 4, lo=1, hi=256),
+                                  es.string("reading", "residual", choices=("residual", "literal")), lam,
+                                  es.number("r_e", 0.5, positive=True), es.number("pw0", 1e-4, positive=True),
+                                  es.integer("seed", 0, lo=0, hi=2**32 - 1))
+        es.check_unknown()
+        estimators.append(cfg)
+    cases, case_labels = [], set()
+    tables = raw["case"]
+    if not isinstance(tables, list) or not tables:
+        raise ConfigError(f, "[[case]]", tables, "at least one [[case]] table is required")
+    for i, table in enumerate(tables, start=1):
+        cs = section(f, f"case[{i}]", table)
+        mode = cs.string("mode", required=True, choices=MODES)
+        est = cs.string("estimator", None)
+        if est is not None and est != "perfect" and est not in labels:
+            raise ConfigError(f, f"case[{i}].estimator", est, f"must be 'perfect' or an estimator label from: {', '.join(labels) or '(none)'}")
+        if mode != "double_loop" and est is None:
+            raise ConfigError(f, f"case[{i}].estimator", None, f"mode {mode} needs an estimator (or \"perfect\")")
+        label = cs.string("label", mode if est is None else f"{mode}, {est}")
+        if label in case_labels:
+            raise ConfigError(f, f"case[{i}].label", label, "must be unique among the cases")
+        case_labels.add(label)
+        cs.check_unknown()
+        cases.append(Case(label, mode, est))
+    return ServoExperiment(f, name, runs, seed, frames, frame_dt, frame_ticks, delay, noise, settle, accel_ff, target,
+                           estimators, cases, raw)
