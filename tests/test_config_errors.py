@@ -121,6 +121,22 @@ MOUNT = {
 }
 
 
+# a servo experiment (paper 003): the closed azimuth loop
+SERVO = {
+    "experiment": {"name": "servo", "runs": 2, "seed": 0},
+    "servo": {"frames": 100, "settle": 0.1},
+    "target": {"kind": "sine"},
+    "estimator": [{"label": "KF", "kind": "kf"}],
+    "case": [{"mode": "on_axis", "estimator": "KF"}],
+}
+SINE = {
+    "experiment": {"name": "sine", "runs": 2, "seed": 0, "dt": 0.01, "steps": 50},
+    "scenario": {"kind": "sine"},
+    "sensor": {"kind": "cartesian", "sigma": 0.003},
+    "filter": [{"kind": "dekf"}],
+}
+
+
 def mount(**changes):
     return edit(MOUNT, **changes)
 
@@ -342,6 +358,26 @@ CASES = [
     case("window-reserved-name", windows('window = [1.0, 2.0]'), "report.windows.window", "window", "not 'window'"),
     case("window-nan", windows('a = [nan, 2.0]'), "report.windows.a", "nan", "seconds"),
     case("windows-not-a-table", to_toml(mount(report={"windows": [1, 2]})), "report.windows", "[1, 2]", "table"),
+    # --- servo experiments and the dual EKF ---------------------------------------------------------
+    case("servo-unknown-mode", edit(SERVO, case=[{"mode": "triple_loop"}]), "case[1].mode", "triple_loop", "on_axis"),
+    case("servo-unknown-estimator", edit(SERVO, case=[{"mode": "on_axis", "estimator": "UKF"}]), "case[1].estimator", "UKF",
+         "perfect"),
+    case("servo-lag-without-estimator", edit(SERVO, case=[{"mode": "velocity_lag"}]), "case[1].estimator", "None",
+         "needs an estimator"),
+    case("servo-settle-too-long", edit(SERVO, servo__settle=5.0), "servo.settle", "5.0", "shorter than the run"),
+    case("servo-cone-angle-zero", edit(SERVO, target={"kind": "cone", "half_angle": 0.0}), "target.half_angle", "0.0", "> 0"),
+    case("servo-forgetting-above-1", edit(SERVO, estimator=[{"label": "D", "kind": "dekf", "lam": 1.5}]),
+         "estimator[1].lam", "1.5", "(0, 1]"),
+    case("servo-no-case", edit(SERVO, drop=["case"]), "[case]", "None", "required"),
+    case("servo-unknown-section", edit(SERVO, sensor={"kind": "polar"}), "[sensor]", "...", "servo experiment"),
+    case("servo-delay-zero", edit(SERVO, servo__delay=0), "servo.delay", "0", "integer in [1"),
+    case("dekf-on-a-mount", edit(MOUNT, filter=[{"kind": "dekf"}]), "filter[1].kind", "dekf", "cartesian"),
+    case("dekf-on-3d", traj(filter=[{"kind": "dekf"}]), "filter[1].kind", "dekf", "one angle channel"),
+    case("dekf-forget-zero", edit(SINE, filter=[{"kind": "dekf", "forget": 0.0}]), "filter[1].forget", "0.0", "(0, 1]"),
+    case("dekf-cv-model", edit(SINE, filter=[{"kind": "dekf", "model": "cv"}]), "filter[1].model", "cv", "ca state"),
+    case("dekf-scale-length", edit(SINE, filter=[{"kind": "dekf", "scale": [1.0, 2.0]}]), "filter[1].scale", "[1.0, 2.0]",
+         "3 values"),
+    case("sine-negative-omega", edit(SINE, scenario={"kind": "sine", "omega": -0.6}), "scenario.omega", "-0.6", "> 0"),
     # --- imm ---------------------------------------------------------------------------------------
     case("imm-unknown-model", plus_filter(kind="imm", models=["cv", "singer"]), "filter[2].models", "['cv', 'singer']",
          "cv, ca, ct"),

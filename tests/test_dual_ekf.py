@@ -40,7 +40,7 @@ def numpy_dekf(z, x0, P0, p, hidden, scale, dt, residual):
             dW2_full[i, i * k:(i + 1) * k] = dW2[i]
         db2 = np.diag(so)
         Jw = np.hstack([dW1, db1, dW2_full, db2])
-        Pw_pred = Pw / float(p["lam"])
+        Pw_pred = Pw / float(p["forget"])
         Pp = A @ P @ A.T + float(p["q"]) * np.outer(G, G)
         if np.isfinite(zk[0]):
             nu = zk[0] - F[0]
@@ -82,7 +82,7 @@ def test_dual_ekf_matches_numpy(residual):
     np.testing.assert_allclose(got.aux["weights"], ws, rtol=1e-8, atol=1e-8 * np.abs(ws).max())
 
 
-@pytest.mark.parametrize("name", ["lam", "w0"])
+@pytest.mark.parametrize("name", ["forget", "w0"])
 def test_gradient_through_the_dual_ekf_matches_finite_differences(name):
     """d(mean squared rate error)/d(λ or the initial weights) through a whole run."""
     net = Network(hidden=4, scale=SCALE, dt=0.01, residual=True)
@@ -107,3 +107,52 @@ def test_gradient_through_the_dual_ekf_matches_finite_differences(name):
     analytic = float(np.sum(g * direction))
     assert abs(analytic) > 0
     np.testing.assert_allclose(analytic, fd, rtol=1e-4)
+
+
+def test_dekf_as_an_experiment_filter_on_the_sine_target(tmp_path):
+    """kind = "dekf" in an experiment file (1-D sine truth, angle measurements): runs beside a CA KF."""
+    from tracklab.config import load_experiment
+    from tracklab.metrics import statistics
+
+    (tmp_path / "d.toml").write_text("""
+[experiment]
+name = "dekf"
+runs = 40
+dt = 0.01
+steps = 1500
+
+[scenario]
+kind = "sine"
+amplitude = 83.33
+omega = 0.6
+
+[sensor]
+kind = "cartesian"
+sigma = 0.002777777777777778   # 10 arcsec
+
+[prior]
+pos_sigma = 0.01
+vel_sigma = 1.0
+acc_sigma = 1.0
+
+[[filter]]
+kind = "kf"
+label = "KF"
+model = "ca"
+q = 1.0
+
+[[filter]]
+kind = "dekf"
+label = "DEKF"
+q = 1.0
+forget = 0.999
+scale = [80.0, 50.0, 30.0]
+
+[report]
+window = [500, 1500]
+""")
+    exp = load_experiment(tmp_path / "d.toml")
+    assert exp.filters[1].params["forget"] == 0.999 and len(exp.filters[1].params["w0"]) == 31
+    st = statistics(exp.monte_carlo(), exp.window)["filters"]
+    assert st["DEKF"]["summary"]["diverged"] == 0
+    assert st["DEKF"]["summary"]["rmse_vel"] < 1.5 * st["KF"]["summary"]["rmse_vel"]

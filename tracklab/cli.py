@@ -90,6 +90,8 @@ def cmd_tune(args) -> int:
     bad = [n for n in names if n not in TUNABLE]
     if not names or bad:
         raise ConfigError(args.experiment, "--params", args.params, f"must name parameters among {', '.join(TUNABLE)}")
+    if "w0" in names:
+        raise ConfigError(args.experiment, "--params", args.params, "w0 (network weights) is tuned through the Python API, tracklab.tune.tune; a file holds no weights")
     if args.loss not in LOSSES:
         raise ConfigError(args.experiment, "--loss", args.loss, f"must be one of {', '.join(LOSSES)}")
     if not (args.lr > 0 and math.isfinite(args.lr)):
@@ -178,7 +180,7 @@ def build_parser():
     r.set_defaults(func=cmd_run)
     tu = sub.add_parser("tune", help="tune filter parameters by gradient descent through the Monte-Carlo runs")
     tu.add_argument("experiment")
-    tu.add_argument("--params", required=True, help="comma-separated: q, r, lam, alpha, beta, gamma, rho, b, q_e, r_e, r_guide")
+    tu.add_argument("--params", required=True, help="comma-separated: q, r, lam, alpha, beta, gamma, rho, b, q_e, r_e, r_guide, forget, pw0, w0")
     tu.add_argument("--steps", type=_positive_int, default=200)
     tu.add_argument("--lr", type=float, default=0.05, help="Adam learning rate (unconstrained coordinates)")
     tu.add_argument("--loss", default="mse_pos", help="mse_pos | pred_mse | nll")

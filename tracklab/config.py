@@ -22,7 +22,8 @@ from tracklab.filters import FILTER_KINDS, build
 from tracklab.filters.fusion import LaserIrFusion, Select
 from tracklab.models import MODELS, cv
 from tracklab.metrics import REPORT_WINDOW
-from tracklab.scenarios import ConstantVelocity, Crossing, MountFrame, Overflight, Trajectory, TrajectoryError, read_csv
+from tracklab.scenarios import (ConstantVelocity, Crossing, MountFrame, Overflight, Sine, Trajectory, TrajectoryError,
+                                 read_csv)
 from tracklab.sensors import SENSOR_KINDS, Sensor, SensorSuite
 from tracklab.studies import parse_studies
 
@@ -393,8 +394,11 @@ def load_experiment(path) -> Experiment:
         raise ConfigError(f, "[[sensor]]", "...", "all sensors must observe positions of the same dimension")
 
     sc = _Section(f, "scenario", raw["scenario"])
-    kind = sc.string("kind", required=True, choices=("crossing", "constant_velocity", "trajectory", "overflight"))
-    if kind == "overflight":
+    kind = sc.string("kind", required=True, choices=("crossing", "constant_velocity", "trajectory", "overflight", "sine"))
+    if kind == "sine":
+        scenario = Sine(dt=dt, steps=steps, amplitude=sc.number("amplitude", 83.33, positive=True),
+                        omega=sc.number("omega", 0.6, positive=True), phase=sc.number("phase", 0.0))
+    elif kind == "overflight":
         max_el = sc.number("max_elevation", 74.947)
         if not 0.0 < max_el < 90.0:
             raise ConfigError(f, "scenario.max_elevation", max_el, "must be an elevation in (0, 90) degrees")
@@ -532,6 +536,25 @@ def _pred_windows(f, table, window, steps, dt):
     return {REPORT_WINDOW: report} | out
 
 
+def _dekf_fields(f, i, fs, options, q, r):
+    """[[filter]] fields of kind dekf -> its parameters (and static network shape in ``options``)."""
+    import jax
+
+    from tracklab.filters.dual_ekf import Network, dekf_params
+
+    options["hidden"] = fs.integer("hidden", 4, lo=1, hi=256)
+    options["reading"] = fs.string("reading", "residual", choices=("residual", "literal"))
+    options["scale"] = _sigma_list(f, f"filter[{i}].scale", fs.get("scale", [100.0, 50.0, 30.0]), 3)
+    forget = fs.number("forget", 0.999)
+    if not 0.0 < forget <= 1.0:
+        raise ConfigError(f, f"filter[{i}].forget", forget, "the forgetting factor must be in (0, 1]")
+    seed = fs.integer("weights_seed", 0, lo=0, hi=2**32 - 1)
+    net = Network(options["hidden"], options["scale"], 1.0, options["reading"] == "residual")
+    p = dekf_params(net, q=q, r=r[0], lam=forget, r_e=fs.number("r_e", 0.5, positive=True),
+                    pw0=fs.number("pw0", 1e-4, positive=True), key=jax.random.key(seed))
+    return {k: np.asarray(v).tolist() for k, v in p.items() if k not in ("q", "r")}
+
+
 def _imm_fields(f, i, fs, dim, default_q, r):
     """[[filter]] fields of kind imm -> its parameters (and its models, turn-rate prior)."""
     from tracklab.filters import IMM_MODELS, imm_params
@@ -623,9 +646,13 @@ def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q) -> Filter
         seen = "several sensors" if mkind == "suite" else f"a '{mkind}' sensor"
         raise ConfigError(f, f"filter[{i}].kind", fkind, f"needs a sensor of kind {' or '.join(ok)}, but sees {seen}")
 
+    if fkind == "dekf" and (dim != 1 or meas.m != 1):
+        raise ConfigError(f, f"filter[{i}].kind", fkind, "dekf tracks one angle channel: a 1-D scenario and a 1-D cartesian sensor")
+    if fkind == "dekf" and fs.get("model", "ca") != "ca":
+        raise ConfigError(f, f"filter[{i}].model", fs.get("model"), "dekf works on the ca state [theta, rate, acceleration]")
     if fkind == "imm" and fs.has("model"):
         raise ConfigError(f, f"filter[{i}].model", fs.get("model"), "imm has its own models: use models = [\"cv\", \"ca\", \"ct\"]")
-    model = "ca" if fkind == "imm" else fs.string("model", "ca" if fkind == "alpha_beta_gamma" else "cv", choices=tuple(MODELS))
+    model = "ca" if fkind in ("imm", "dekf") else fs.string("model", "ca" if fkind == "alpha_beta_gamma" else "cv", choices=tuple(MODELS))
     if fkind == "polar_kf" and model != "cv":
         raise ConfigError(f, f"filter[{i}].model", model, "polar_kf has its own polar CV state: use model = \"cv\"")
     if fkind == "alpha_beta" and model != "cv" or fkind == "alpha_beta_gamma" and model != "ca":
@@ -674,6 +701,8 @@ def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q) -> Filter
         params.update(_imm_fields(f, i, fs, dim, default_q, r))
         options["models"] = tuple(params.pop("models"))
         options["turn_rate_sigma"] = params.pop("turn_rate_sigma")
+    if fkind == "dekf":
+        params.update(_dekf_fields(f, i, fs, options, q, r))
     if fkind == "stf":
         params["rho"] = fs.number("rho", 0.95)
         if not 0.0 < params["rho"] <= 1.0:

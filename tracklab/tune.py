@@ -9,7 +9,8 @@ Parameters are optimised in an unconstrained space:
 
 * ``q``, ``r``, ``lam``, ``b``, ``q_e``, ``r_e``, ``r_guide`` (variances, the
   tracking index, the STF's weakening factor): logarithms;
-* ``rho`` (the STF's forgetting factor, in (0, 1)): logit;
+* ``rho``, ``forget`` (the STF's and the DEKF's forgetting factors, in (0, 1)): logit;
+* ``w0`` (the DEKF's initial network weights): as they are;
 * ``alpha``, ``beta`` (, ``gamma``): tuned together inside the α-β(-γ) stability
   region (Jury): α = 2σ(u), β = (4 − 2α)σ(v), γ = 4αβ/(2 − α)·σ(w), σ the logistic.
 
@@ -35,9 +36,10 @@ import optax
 from tracklab.engine import make_chunk_fn
 
 GAINS = ("alpha", "beta", "gamma")
-POSITIVE = ("q", "r", "lam", "b", "q_e", "r_e", "r_guide")
-UNIT = ("rho",)
-TUNABLE = POSITIVE + UNIT + GAINS
+POSITIVE = ("q", "r", "lam", "b", "q_e", "r_e", "r_guide", "pw0")
+UNIT = ("rho", "forget")
+FREE = ("w0",)  # unconstrained: the DEKF's initial network weights
+TUNABLE = POSITIVE + UNIT + FREE + GAINS
 
 
 def _window_mean(x, window):
@@ -64,6 +66,8 @@ def encode(params: dict, names) -> dict:
             theta[n] = jnp.log(jnp.asarray(params[n], float))
         elif n in UNIT:
             theta[n] = jax.scipy.special.logit(jnp.minimum(jnp.asarray(params[n], float), 1.0 - 1e-6))
+        elif n in FREE:
+            theta[n] = jnp.asarray(params[n], float)
     gains = [g for g in GAINS if g in params]
     if any(g in names for g in GAINS):
         a = jnp.asarray(params["alpha"], float)
@@ -85,6 +89,9 @@ def decode(theta: dict, params: dict) -> dict:
     for n in UNIT:
         if n in theta:
             out[n] = jax.nn.sigmoid(theta[n])
+    for n in FREE:
+        if n in theta:
+            out[n] = theta[n]
     if "alpha" in theta:
         a = 2 * jax.nn.sigmoid(theta["alpha"])
         b = (4 - 2 * a) * jax.nn.sigmoid(theta["beta"])
@@ -218,9 +225,11 @@ def tuned_document(exp, result: TuneResult, out_path) -> dict:
             else:
                 key = "accel_sigma" if fc.model == "cv" else "accel_increment_sigma"
                 table[key] = math.sqrt(float(tuned["q"]))
-        for k in ("rho", "b", "q_e"):
+        for k in ("rho", "b", "q_e", "forget", "pw0"):
             if k in tuned:
                 table[k] = float(tuned[k])
+        if "w0" in tuned:
+            raise ValueError(f"filter {fc.label!r}: tuned network weights cannot be written into an experiment file")
         for k in ("r_e", "r_guide"):
             if k in tuned:
                 table[k] = [float(v) for v in np.atleast_1d(tuned[k])]

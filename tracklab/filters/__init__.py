@@ -19,6 +19,7 @@ from tracklab.filters.kalman import (
     model_sequential_ekf,
     noise_params,
 )
+from tracklab.filters.dual_ekf import model_dekf
 from tracklab.filters.error_space import model_error_space
 from tracklab.filters.imm import IMM_MODELS, imm_params, model_imm
 from tracklab.filters.polar import model_polar_kf
@@ -39,6 +40,8 @@ FILTER_KINDS = {
             ("polar", "spherical", "angles", "cartesian", "mount", "suite")),
     "imm": ("interacting multiple models over cv / ca / ct (coordinated turn); mode probabilities in aux",
             ("polar", "spherical", "angles", "cartesian", "mount", "suite")),
+    "dekf": ("dual EKF with a neural motion model (paper 003); one angle channel, 1-D linear sensor",
+             ("cartesian",)),
     "error_space": ("error-space estimator (paper 004): guide-data and guide-error KFs; guide = previous | a sensor",
                     ("cartesian", "mount")),
 }
@@ -65,6 +68,9 @@ def build(kind, model, sensor, params, options=None) -> Filter:
     if kind == "imm":
         return model_imm(model.dim, float(model.F[0, 1]), sensor, params, tuple(options.get("models", IMM_MODELS)),
                          options.get("turn_rate_sigma", 0.1))
+    if kind == "dekf":
+        return model_dekf(model, sensor, params, options.get("hidden", 4), options.get("scale", (100.0, 50.0, 30.0)),
+                          options.get("reading", "residual"))
     if kind == "error_space":
         guide = options.get("guide", "previous")
         m = sensor.m if guide == "previous" else sensor.m // 2

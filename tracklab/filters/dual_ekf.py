@@ -28,7 +28,7 @@ classical dual EKF of Wan & Nelson):
 
 A step with no measurement predicts the state and inflates P_w only. Parameters
 {q (state noise: variance of the acceleration increment, the CA model's DWPA),
-r, lam, r_e, w0 (initial weights), pw0 (initial weight variance)} are a pytree: λ
+r, forget (λ), r_e, w0 (initial weights), pw0 (initial weight variance)} are a pytree: λ
 and the initial weights can be trained by gradient through whole Monte-Carlo runs.
 """
 
@@ -121,7 +121,7 @@ def dual_ekf(net: Network, params) -> Filter:
 
     def step(p, s, meas):
         z, present = masked_meas(meas)
-        Pw_pred = s.Pw / p["lam"]  # forgetting
+        Pw_pred = s.Pw / p["forget"]  # forgetting
         x_pred = net(s.x, s.w)
         A = jax.jacfwd(net, argnums=0)(s.x, s.w)
         Q = p["q"] * jnp.outer(G, G)
@@ -144,7 +144,7 @@ def dekf_params(net: Network, q, r, lam=0.999, r_e=0.5, w0=None, pw0=1e-4, key=N
     if w0 is None:
         key = jax.random.key(0) if key is None else key
         w0 = initial_weights(net, key) if net.residual else ca_weights(net, key)
-    return {"q": jnp.asarray(q, float), "r": jnp.asarray(r, float), "lam": jnp.asarray(lam, float),
+    return {"q": jnp.asarray(q, float), "r": jnp.asarray(r, float), "forget": jnp.asarray(lam, float),
             "r_e": jnp.asarray(r_e, float), "w0": jnp.asarray(w0, float), "pw0": jnp.asarray(pw0, float)}
 
 
@@ -153,3 +153,11 @@ def predict_ahead(net: Network, x, w, n: int):
     for _ in range(n):
         x = net(x, w)
     return x
+
+
+def model_dekf(model, sensor, params, hidden=4, scale=(100.0, 50.0, 30.0), reading="residual") -> Filter:
+    """The dual EKF as an experiment filter: one angle channel, CA-layout state [θ, θ̇, θ̈]."""
+    if model.dim != 1 or model.order != 3 or sensor.m != 1:
+        raise ValueError("dekf tracks one channel: a 1-D scenario, the ca model and a 1-D linear sensor")
+    net = Network(int(hidden), tuple(float(v) for v in scale), float(model.F[0, 1]), reading == "residual")
+    return dual_ekf(net, params)

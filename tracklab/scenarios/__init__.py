@@ -3,6 +3,7 @@
 from tracklab.scenarios.constant_velocity import ConstantVelocity, Crossing
 from tracklab.scenarios.mount_frame import MountFrame, mount_angles
 from tracklab.scenarios.overflight import Overflight
+from tracklab.scenarios.sine import Sine
 from tracklab.scenarios.trajectory import Trajectory, TrajectoryError, read_csv
 
 SCENARIO_KINDS = {
@@ -10,9 +11,10 @@ SCENARIO_KINDS = {
     "constant_velocity": "CV with white acceleration from a given initial state, 1-3 D (paper 002 §3)",
     "trajectory": "truth from a CSV file with columns t,x,y,z (s, m)",
     "overflight": "straight level pass over the site: altitude, speed, max_elevation (deg), t_closest (paper 004)",
+    "sine": "one angle, A sin(omega t + phase): amplitude (deg), omega (rad/s) (paper 003's equivalent target)",
 }
 
 __all__ = [
-    "SCENARIO_KINDS", "ConstantVelocity", "Crossing", "MountFrame", "Overflight", "Trajectory", "TrajectoryError",
+    "SCENARIO_KINDS", "ConstantVelocity", "Crossing", "MountFrame", "Overflight", "Sine", "Trajectory", "TrajectoryError",
     "mount_angles", "read_csv",
 ]

@@ -44,7 +44,7 @@ def rate_loss_fn(net, base_params, target, prior, frames, frame_dt, delay, sigma
         return jnp.sum(late * (pred - rate_now) ** 2) / jnp.sum(late)
 
     def loss(theta, keys):
-        params = dict(base_params, w0=theta["w0"], lam=jax.nn.sigmoid(theta["lam_logit"]))
+        params = dict(base_params, w0=theta["w0"], forget=jax.nn.sigmoid(theta["lam_logit"]))
         return jnp.mean(jax.vmap(lambda k: one(params, k))(keys))
 
     return loss
@@ -54,7 +54,7 @@ def train_dekf(net, params, target, prior, *, frames, frame_dt, delay, sigma, se
                runs_per_step=8, eval_runs=32, seed=0, log=None):
     """Train w0 and λ; returns (trained params, history [(step, loss)], eval before, eval after)."""
     loss = rate_loss_fn(net, params, target, prior, frames, frame_dt, delay, sigma, settle)
-    lam = float(params["lam"])
+    lam = float(params["forget"])
     theta = {"w0": jnp.asarray(params["w0"]), "lam_logit": jnp.asarray(math.log(lam / max(1 - lam, 1e-9)))}
     key = jax.random.key(seed)
     train_key, eval_key = jax.random.fold_in(key, 1), jax.random.fold_in(key, 2)
@@ -77,5 +77,5 @@ def train_dekf(net, params, target, prior, *, frames, frame_dt, delay, sigma, se
         updates, state = opt.update(g, state, theta)
         theta = optax.apply_updates(theta, updates)
     after = float(evaluate(theta, eval_keys))
-    trained = dict(params, w0=theta["w0"], lam=jax.nn.sigmoid(theta["lam_logit"]))
+    trained = dict(params, w0=theta["w0"], forget=jax.nn.sigmoid(theta["lam_logit"]))
     return trained, history, before, after

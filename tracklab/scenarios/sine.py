@@ -1,0 +1,36 @@
+"""One angle following θ(t) = A sin(ωt + φ) (paper 003's equivalent sine target, 83.33° sin 0.6t).
+
+A 1-D truth in CV layout [θ, θ̇] (degrees, degrees per second), the same in every
+run; the measurement noise and the prior make the runs differ.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax.numpy as jnp
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Sine:
+    dt: float
+    steps: int
+    amplitude: float = 83.33
+    omega: float = 0.6
+    phase: float = 0.0  # rad
+
+    dim = 1
+    axes = ("angle",)
+    units = ("deg", "deg/s")
+
+    def truth(self) -> np.ndarray:
+        t = self.dt * np.arange(self.steps + 1)
+        arg = self.omega * t + self.phase
+        return np.stack([self.amplitude * np.sin(arg), self.amplitude * self.omega * np.cos(arg)], -1)
+
+    def linear_gaussian(self):
+        return None
+
+    def simulate(self, key):
+        return jnp.asarray(self.truth())
