@@ -25,6 +25,9 @@ label = "KF"
 kind = "kf"                    # kf (CA model) | dekf (dual EKF, paper 003)
 q = 1.0                        # acceleration-increment variance per frame, (deg/s²)²
 
+# a "dekf" estimator: hidden, reading (residual | literal), q, lam, r_e, pw0, seed, and
+# train_steps > 0 (train_lr, train_runs) to train its initial weights and λ first
+
 [[case]]
 mode = "on_axis"               # double_loop | velocity_lag | on_axis
 estimator = "KF"               # none for double_loop; "perfect" = the true target
@@ -63,6 +66,9 @@ class EstimatorConfig:
     r_e: float = 0.5
     pw0: float = 1e-4
     seed: int = 0
+    train_steps: int = 0  # > 0: train w0 and λ end to end first (tracklab.servo.training)
+    train_lr: float = 1e-3
+    train_runs: int = 8
 
 
 @dataclass(frozen=True)
@@ -161,7 +167,11 @@ class ServoExperiment:
 
         axis = AzimuthAxis(dt=self.frame_dt / self.frame_ticks)
         target = self.target_fn()
-        ests = {e.label: self.build_estimator(e) for e in self.estimators}
+        ests, training = {}, {}
+        for e in self.estimators:
+            ests[e.label] = self.build_estimator(e)
+            if e.kind == "dekf" and e.train_steps > 0:
+                ests[e.label], training[e.label] = self.train(e, ests[e.label], progress)
         prior = self.prior()
         T = axis.dt
         n_ticks = self.frames * self.frame_ticks
@@ -217,12 +227,28 @@ class ServoExperiment:
             "name": self.name, "runs": runs, "steps": self.frames, "dt": self.frame_dt, "series_stride": 1,
             "window": [1, self.frames], "wall_s": wall, "compile_s": compile_s, "experiment": self.raw,
             "units": ["deg", "deg/s"], "axes": ["az"],
+            "training": training,
             "filters": cases,
             "example_run": {"t": t[::stride], "error": {k: v["error"][::stride] for k, v in examples.items()},
                             "t_frames": self.frame_dt * np.arange(self.frames),
                             "rate_error": {k: v["rate_error"] for k, v in examples.items()
                                            if self._case(k).estimator not in (None, "perfect")}},
         }
+
+    def train(self, cfg: EstimatorConfig, est, progress=None):
+        """Train a DEKF estimator's initial weights and λ on the rate it feeds forward; held-out evaluation."""
+        from tracklab.servo.loops import Estimator
+        from tracklab.servo.training import train_dekf
+
+        net = est.filter_net
+        frames = min(self.frames, int(round((self.settle + 10.0) / self.frame_dt)))
+        trained, history, before, after = train_dekf(
+            net, est.params, self.target_fn(), self.prior(), frames=frames, frame_dt=self.frame_dt, delay=self.delay,
+            sigma=max(self.noise, 1e-3) / 3600.0, settle=min(self.settle, 0.5 * frames * self.frame_dt),
+            steps=cfg.train_steps, lr=cfg.train_lr, runs_per_step=cfg.train_runs, seed=cfg.seed + 1)
+        info = {"steps": len(history), "loss_history": [v for _, v in history], "heldout_before": before,
+                "heldout_after": after, "forget": float(trained["forget"]), "frames": frames}
+        return Estimator(est.filter, est.ahead, trained, net), info
 
     def _case(self, label):
         return next(c for c in self.cases if c.label == label)
@@ -360,7 +386,8 @@ def load_servo_experiment(f: Path, raw: dict, section) -> ServoExperiment:
             cfg = EstimatorConfig(label, ekind, cfg.q, es.integer("hidden", 4, lo=1, hi=256),
                                   es.string("reading", "residual", choices=("residual", "literal")), lam,
                                   es.number("r_e", 0.5, positive=True), es.number("pw0", 1e-4, positive=True),
-                                  es.integer("seed", 0, lo=0, hi=2**32 - 1))
+                                  es.integer("seed", 0, lo=0, hi=2**32 - 1), es.integer("train_steps", 0, lo=0, hi=100_000),
+                                  es.number("train_lr", 1e-3, positive=True), es.integer("train_runs", 8, lo=1, hi=100_000))
         es.check_unknown()
         estimators.append(cfg)
     cases, case_labels = [], set()

@@ -138,6 +138,7 @@ class Estimator:
     filter: object
     ahead: Callable
     params: object = None
+    filter_net: object = None  # the DEKF's network, for training
 
 
 def track(axis: AzimuthAxis, mode: str, target: Callable, frames: int, key, *, estimator: Estimator | None = None,
@@ -236,7 +237,7 @@ def dekf_estimator(net, params) -> Estimator:
     def ahead(p, state, out, n):
         return predict_ahead(net, state.x, state.w, n)
 
-    return Estimator(dual_ekf(net, params), ahead, params)
+    return Estimator(dual_ekf(net, params), ahead, params, net)
 
 
 def sine_target(amplitude, omega):

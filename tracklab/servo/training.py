@@ -6,7 +6,8 @@ the loop does, so it can be trained on its own: a batch of Monte-Carlo runs of
 noisy measurements at the camera rate, the whole DEKF scan over each, and the
 loss the mean squared error of the rate it predicts ``delay`` frames ahead
 (eq. 17) — the feed-forward the on-axis loop receives — after ``settle``.
-Adam on (w₀, logit λ); a fresh batch every step; evaluation on held-out runs.
+Adam (gradients clipped to norm 1) on (w₀, logit λ); a fresh batch every step;
+evaluation on held-out runs.
 The paper adapts the weights online only; this trains where they start from.
 """
 
@@ -61,7 +62,7 @@ def train_dekf(net, params, target, prior, *, frames, frame_dt, delay, sigma, se
     eval_keys = jax.random.split(eval_key, eval_runs)
     evaluate = jax.jit(loss)
     before = float(evaluate(theta, eval_keys))
-    opt = optax.adam(lr)
+    opt = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(lr))  # the adapting filter's loss is rough
     state = opt.init(theta)
     vg = jax.jit(jax.value_and_grad(loss))
     history = []
