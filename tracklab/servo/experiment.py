@@ -135,11 +135,12 @@ class ServoExperiment:
 
     def target_scale(self):
         """Typical |θ|, |θ̇|, |θ̈| of the target (the network's input scaling)."""
+        import jax
         import jax.numpy as jnp
 
         f = self.target_fn()
         t = jnp.linspace(0.0, self.frames * self.frame_dt, 2001)
-        vals = np.abs(np.asarray(jax_vmap(f)(t)))
+        vals = np.abs(np.asarray(jax.vmap(f)(t)))
         return tuple(float(max(v, 1e-6)) for v in vals.max(axis=0))
 
     def prior(self):
@@ -252,12 +253,6 @@ class ServoExperiment:
 
     def _case(self, label):
         return next(c for c in self.cases if c.label == label)
-
-
-def jax_vmap(f):
-    import jax
-
-    return jax.vmap(f)
 
 
 def cone_target(half_angle, axis_elevation, period):
