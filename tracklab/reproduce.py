@@ -26,6 +26,8 @@ METRICS = {  # titles without units: the "unit" column gives each row's (m, or d
     "nees": ("NEES", "{:.2f}"),
     "nees_in_bounds": ("NEES in 95 %", "{:.0%}"),
     "rmse_pos_over_pcrlb": ("RMSE/PCRLB", "{:.3f}"),
+    "max_track_err": ("servo max err (′)", "{:.3f}"),
+    "random_err": ("servo random err (″)", "{:.2f}"),
     "diverged": ("diverged", "{:d}"),
     "runs": ("runs", "{:d}"),
     "wall_s": ("wall (s)", "{:.1f}"),
