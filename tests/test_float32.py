@@ -11,19 +11,21 @@ import tracklab
 from tracklab.config import load_experiment
 from tracklab.filters import build, noise_params
 from tracklab.metrics import statistics
-from tracklab.models import cv
+from tracklab.models import ca, cv
 from tracklab.sensors import Sensor
 
 def _distinct_experiments():
-    """Every bundled experiment but the tuning studies (the scenarios of lidar_crossing, laser_ir_alpha_beta
-    and error_space_overflight), and of the real-flight runs of one comparison only the first: they differ
-    from each other in the truth file alone, not in anything that single precision touches."""
+    """Every bundled experiment except: the tuning studies (the scenarios of lidar_crossing,
+    laser_ir_alpha_beta and error_space_overflight); the servo files (tests/test_servo.py); the
+    real-flight error-space runs after the first (they differ only in the truth file); and the
+    nine-filter real-flight comparisons, whose filter kinds are each checked in float32 on the same
+    measurements above and whose spherical sensor and trajectories are checked in lidar_real_flight."""
     import tomllib
 
     seen, out = set(), []
     for p in sorted(Path(__file__).resolve().parents[1].joinpath("experiments").glob("*.toml")):
         raw = tomllib.loads(p.read_text())
-        if p.stem.startswith("tuning_") or "servo" in raw:  # servo loops: tests/test_servo.py
+        if p.stem.startswith(("tuning_", "real_flights_")) or "servo" in raw:
             continue
         sensors = raw["sensor"] if isinstance(raw["sensor"], list) else [raw["sensor"]]
         signature = (raw["scenario"]["kind"], tuple(s["kind"] for s in sensors),
@@ -71,7 +73,7 @@ def _lidar_measurements(seed=0, T=200):
 
 @pytest.mark.parametrize("kind,opts", [("ekf", {}), ("cmkf", {"debias": "unbiased"}), ("sequential_ekf", {}),
                                        ("polar_kf", {}), ("ukf", {}), ("alpha_beta", {"gains": "explicit"}),
-                                       ("stf", {})])
+                                       ("stf", {}), ("imm", {"models": ("cv", "ct")})])
 def test_float32_matches_float64_on_the_same_measurements(kind, opts):
     """Joseph-form updates keep single precision within centimetres of double at 20 km."""
     truth, z = _lidar_measurements()
@@ -81,20 +83,30 @@ def test_float32_matches_float64_on_the_same_measurements(kind, opts):
         p.update(alpha=np.array(0.3), beta=np.array(0.05))
     if kind == "stf":
         p.update(rho=np.array(0.95), b=np.array(1.0))
+    if kind == "imm":
+        from tracklab.filters import imm_params
+
+        p = imm_params(("cv", "ct"), [1.0, 1.0], 1e-6, np.array([100.0**2, 0.003**2]))
     x0 = np.linalg.solve(cv(2, 0.5).F, truth[0]) + [50.0, 5.0, -50.0, 5.0]
     P0 = np.diag([100.0, 50.0, 100.0, 50.0]) ** 2
-    d = tracklab.run_filter(build(kind, cv(2, 0.5), sensor, p, opts), z, x0=x0, P0=P0)
+    make, pos = (lambda: cv(2, 0.5)), [0, 2]
+    if kind == "imm":  # its common state is the CA layout
+        make, pos = (lambda: ca(2, 0.5)), [0, 3]
+        x0, P0 = (np.asarray(a) for a in make().embed(jnp.asarray(x0), jnp.asarray(P0), 1.0))
+    d = tracklab.run_filter(build(kind, make(), sensor, p, opts), z, x0=x0, P0=P0)
     with jax.enable_x64(False):  # the filter built and run in single precision
         f32 = lambda a: jnp.asarray(np.asarray(a), jnp.float32)
-        flt = build(kind, cv(2, 0.5), sensor, {k: f32(v) for k, v in p.items()}, opts)
+        flt = build(kind, make(), sensor, {k: f32(v) for k, v in p.items()}, opts)
         s = tracklab.run_filter(flt, f32(z), x0=f32(x0), P0=f32(P0))
     assert s.x.dtype == np.float32 and d.x.dtype == np.float64
-    pos = [0, 2]
-    assert np.max(np.abs(np.asarray(s.x)[:, pos] - np.asarray(d.x)[:, pos])) < 0.5  # m, against errors of ~35 m
+    # m, against errors of ~35 m; the IMM's mixture weights are exponentials of log-likelihood
+    # differences, whose float32 rounding moves its estimate by up to a few metres while the modes settle
+    tol = 5.0 if kind == "imm" else 0.5
+    assert np.max(np.abs(np.asarray(s.x)[:, pos] - np.asarray(d.x)[:, pos])) < tol
     sd = np.sqrt(np.asarray(d.P)[:, pos, pos])
     # standard deviations within 0.5 %: the unbiased conversion's covariance is the most sensitive
     # (it adds r²-sized terms to get an r²σ²-sized result), at about 0.2 % in float32
-    np.testing.assert_allclose(np.sqrt(np.asarray(s.P)[:, pos, pos]), sd, rtol=5e-3)
+    np.testing.assert_allclose(np.sqrt(np.asarray(s.P)[:, pos, pos]), sd, rtol=2e-2 if kind == "imm" else 5e-3)
 
 
 @pytest.mark.parametrize("path", EXPERIMENTS, ids=[p.stem for p in EXPERIMENTS])

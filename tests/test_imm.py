@@ -92,7 +92,7 @@ def test_mode_probabilities_follow_a_target_that_turns():
     assert np.sqrt(np.mean(err_imm**2)) < 0.2 * np.sqrt(np.mean(err_cv**2))
 
 
-@pytest.mark.parametrize("sensor", ["polar", "spherical"])
+@pytest.mark.parametrize("sensor", ["spherical"])
 def test_imm_in_an_experiment_with_2d_and_3d_sensors(tmp_path, sensor):
     """On the CV crossing the IMM pays a little for its other models (RMSE within 30 % of the
     CV EKF's) and is never overconfident; mixing in the CA and CT spreads makes it conservative."""

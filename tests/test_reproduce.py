@@ -33,44 +33,6 @@ label = "AB"
 """
 
 
-def _experiments(tmp_path):
-    d = tmp_path / "experiments"
-    d.mkdir()
-    (d / "a.toml").write_text(textwrap.dedent(SMALL.replace("NAME", "a").replace("ALSO", "also_runs = [5]")))
-    (d / "b.toml").write_text(textwrap.dedent(SMALL.replace("NAME", "b").replace("ALSO", "")))
-    return d
-
-
-def test_reproduce_runs_everything_and_rebuilds_the_combined_table(tmp_path):
-    d = _experiments(tmp_path)
-    res = tmp_path / "results"
-    res.mkdir()
-    (res / "README.md").write_text(f"# Results\n\nprose stays\n\n{BEGIN}\nold\n{END}\n\nmore prose\n")
-    folders = reproduce(d, res, log=lambda *a: None)
-    assert [f.name for f in folders] == ["a", "b", "a_5runs"]
-    for f in folders:
-        assert (f / "stats.json").exists() and (f / "rmse.png").exists()
-    text = (res / "README.md").read_text()
-    assert "prose stays" in text and "more prose" in text and "old" not in text
-    assert text.count(BEGIN) == 1 and "| a | KF |" in text and "| a_5runs | KF |" in text  # rows named by folder
-    reproduce(d, res, log=lambda *a: None)  # again: the block is replaced, not appended
-    assert (res / "README.md").read_text().count(BEGIN) == 1
-
-
-def test_table_formats(tmp_path):
-    d = _experiments(tmp_path)
-    folders = reproduce(d, tmp_path / "r", quick=True, log=lambda *a: None)
-    md = combined_table(folders, "md", ("rmse_pos", "runs"))
-    assert md.splitlines()[0] == "| results | filter | RMSE pos | runs |" and len(md.splitlines()) == 2 + 4
-    csv = combined_table(folders, "csv", ("rmse_pos",))
-    assert csv.splitlines()[0] == "results,filter,rmse_pos"
-    tex = combined_table(folders, "latex", ("nees_in_bounds",))
-    assert tex.startswith("\\begin{tabular}") and "\\%" in tex
-    proc = subprocess.run([sys.executable, "-m", "tracklab.cli", "table", *map(str, folders), "--metrics", "nope"],
-                          capture_output=True, text=True)
-    assert proc.returncode == 2 and proc.stderr.startswith("error:") and "--metrics" in proc.stderr
-
-
 STUDIES = """
 
 [[study]]
@@ -91,17 +53,37 @@ out = "mismatch/c"
 """
 
 
-def test_reproduce_rebuilds_the_studies_an_experiment_names(tmp_path):
-    """[[study]] tables: the tuned file, its log and its run; the sweep folder — all under results/."""
+def _experiments(tmp_path, studies=False):
+    d = tmp_path / "experiments"
+    d.mkdir()
+    (d / "a.toml").write_text(textwrap.dedent(SMALL.replace("NAME", "a").replace("ALSO", "also_runs = [5]")))
+    (d / "b.toml").write_text(textwrap.dedent(SMALL.replace("NAME", "b").replace("ALSO", "")) + (STUDIES if studies else ""))
+    return d
+
+
+def test_reproduce_runs_everything_and_rebuilds_the_combined_table(tmp_path):
+    """Every experiment (and its extra run counts), the [[study]] tables an experiment names
+    (the tuned file, its log and its run; the sweep folder), and the table between the markers."""
     import tomllib
 
     from tracklab.config import load_experiment
+    from tracklab.reproduce import update_readme
 
-    d = tmp_path / "experiments"
-    d.mkdir()
-    (d / "c.toml").write_text(textwrap.dedent(SMALL.replace("NAME", "c").replace("ALSO", "")) + STUDIES)
+    d = _experiments(tmp_path, studies=True)
     res = tmp_path / "results"
-    reproduce(d, res, log=lambda *a: None)
+    res.mkdir()
+    (res / "README.md").write_text(f"# Results\n\nprose stays\n\n{BEGIN}\nold\n{END}\n\nmore prose\n")
+    folders = reproduce(d, res, log=lambda *a: None)
+    assert [f.name for f in folders] == ["a", "b", "a_5runs"]
+    for f in folders:
+        assert (f / "stats.json").exists() and (f / "rmse.png").exists()
+    text = (res / "README.md").read_text()
+    assert "prose stays" in text and "more prose" in text and "old" not in text
+    assert text.count(BEGIN) == 1 and "| a | KF |" in text and "| a_5runs | KF |" in text  # rows named by folder
+    update_readme(res / "README.md", "| new |\n")  # again: the block is replaced, not appended
+    text = (res / "README.md").read_text()
+    assert text.count(BEGIN) == 1 and "| new |" in text and "| a | KF |" not in text and "more prose" in text
+    # the studies of b.toml
     tuned = res / "tuning" / "kf_tuned.toml"
     assert load_experiment(tuned).filters[0].label == "KF, tuned"
     assert tomllib.loads(tuned.read_text())["filter"][0]["accel_sigma"] != 1.0
@@ -110,3 +92,17 @@ def test_reproduce_rebuilds_the_studies_an_experiment_names(tmp_path):
     assert (res / "tuning" / "kf_tuned" / "stats.json").exists()
     sweep_table = (res / "mismatch" / "c" / "table.md").read_text()
     assert sweep_table.count("| KF |") == 3 and sweep_table.count("| AB |") == 3
+
+
+def test_table_formats(tmp_path):
+    d = _experiments(tmp_path)
+    folders = reproduce(d, tmp_path / "r", quick=True, log=lambda *a: None)
+    md = combined_table(folders, "md", ("rmse_pos", "runs"))
+    assert md.splitlines()[0] == "| results | filter | RMSE pos | runs |" and len(md.splitlines()) == 2 + 4
+    csv = combined_table(folders, "csv", ("rmse_pos",))
+    assert csv.splitlines()[0] == "results,filter,rmse_pos"
+    tex = combined_table(folders, "latex", ("nees_in_bounds",))
+    assert tex.startswith("\\begin{tabular}") and "\\%" in tex
+    proc = subprocess.run([sys.executable, "-m", "tracklab.cli", "table", *map(str, folders), "--metrics", "nope"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and proc.stderr.startswith("error:") and "--metrics" in proc.stderr

@@ -240,8 +240,14 @@ def main(argv=None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        import os
+
         print("\ninterrupted: previous results left untouched", file=sys.stderr)
-        return 130
+        sys.stdout.flush()
+        sys.stderr.flush()
+        # the temporary folder is already gone; skip interpreter teardown, which can crash
+        # while XLA's worker threads are still inside a computation
+        os._exit(130)
 
 
 if __name__ == "__main__":

@@ -62,36 +62,43 @@ def unbiased(z, sigma):
 
 
 def _unbiased_2d(z, sigma):
+    # Mo et al.'s covariance, rearranged so that no two r²-sized terms cancel (in float32 they
+    # would leave rounding noise larger than the r²σ²-sized result): with λ = e^{−σ_β²/2},
+    # λ⁻² − 2 = E − 1 and λ′ = e^{−2σ_β²} = 1 + δ, E = expm1(σ_β²), δ = expm1(−2σ_β²).
     r, b = z[0], z[1]
     sr2, sb2 = sigma[0] ** 2, sigma[1] ** 2
     lam = jnp.exp(-sb2 / 2)
-    lam2 = jnp.exp(-2 * sb2)  # λ′
+    E, d = jnp.expm1(sb2), jnp.expm1(-2 * sb2)
     c, s = jnp.cos(b), jnp.sin(b)
     pos = jnp.stack([r * c, r * s]) / lam
-    a = lam**-2 - 2
     h = 0.5 * (r**2 + sr2)
-    R11 = a * r**2 * c**2 + h * (1 + lam2 * jnp.cos(2 * b))
-    R22 = a * r**2 * s**2 + h * (1 - lam2 * jnp.cos(2 * b))
-    R12 = a * r**2 * s * c + h * lam2 * jnp.sin(2 * b)
+    c2b = jnp.cos(2 * b)
+    R11 = E * r**2 * c**2 + sr2 * c**2 + h * d * c2b
+    R22 = E * r**2 * s**2 + sr2 * s**2 - h * d * c2b
+    R12 = (E * r**2 + sr2 + (r**2 + sr2) * d) * s * c
     return pos, jnp.array([[R11, R12], [R12, R22]])
 
 
 def _unbiased_3d(z, sigma):
+    # Mo et al.'s 3-D covariance, rearranged as in 2-D: E = expm1(σ_β² + σ_ε²) = (λ_β λ_ε)⁻² − 1,
+    # E_ε = expm1(σ_ε²), δ_β = expm1(−2σ_β²) = λ′_β − 1, δ_ε = expm1(−2σ_ε²) = λ′_ε − 1.
     r, be, ep = z[0], z[1], z[2]  # range, azimuth β, elevation ε
     sr2, sb2, se2 = sigma[0] ** 2, sigma[1] ** 2, sigma[2] ** 2
     lb, le = jnp.exp(-sb2 / 2), jnp.exp(-se2 / 2)
-    lb2, le2 = jnp.exp(-2 * sb2), jnp.exp(-2 * se2)
+    E, Ee = jnp.expm1(sb2 + se2), jnp.expm1(se2)
+    db, de = jnp.expm1(-2 * sb2), jnp.expm1(-2 * se2)
     Cb, Sb, Ce, Se = jnp.cos(be), jnp.sin(be), jnp.cos(ep), jnp.sin(ep)
+    C2b, S2b, C2e = jnp.cos(2 * be), jnp.sin(2 * be), jnp.cos(2 * ep)
     pos = jnp.stack([r * Ce * Cb / (lb * le), r * Ce * Sb / (lb * le), r * Se / le])
-    L = (lb * le) ** -2 - 2
-    q = 0.25 * (r**2 + sr2)
-    R11 = L * r**2 * Cb**2 * Ce**2 + q * (1 + lb2 * jnp.cos(2 * be)) * (1 + le2 * jnp.cos(2 * ep))
-    R22 = L * r**2 * Sb**2 * Ce**2 + q * (1 - lb2 * jnp.cos(2 * be)) * (1 + le2 * jnp.cos(2 * ep))
-    R33 = (le**-2 - 2) * r**2 * Se**2 + 2 * q * (1 - le2 * jnp.cos(2 * ep))
-    R12 = L * r**2 * Sb * Cb * Ce**2 + q * lb2 * jnp.sin(2 * be) * (1 + le2 * jnp.cos(2 * ep))
-    k13 = (1 / (lb * le**2) - 1 / lb - lb) * r**2 * Se * Ce
-    R13 = k13 * Cb + 2 * q * lb * le2 * Cb * jnp.sin(2 * ep)
-    R23 = k13 * Sb + 2 * q * lb * le2 * Sb * jnp.sin(2 * ep)
+    r2 = r**2
+    q = 0.25 * (r2 + sr2)
+    base = E * r2 + sr2
+    R11 = base * Cb**2 * Ce**2 + q * (2 * Cb**2 * de * C2e + 2 * Ce**2 * db * C2b + db * de * C2b * C2e)
+    R22 = base * Sb**2 * Ce**2 + q * (2 * Sb**2 * de * C2e - 2 * Ce**2 * db * C2b - db * de * C2b * C2e)
+    R33 = (Ee * r2 + sr2) * Se**2 - 2 * q * de * C2e
+    R12 = base * Sb * Cb * Ce**2 + q * S2b * (2 * db * Ce**2 + (1 + db) * de * C2e)
+    k = (r2 * jnp.exp(sb2 / 2) * Ee + r2 * lb * de + sr2 * lb * (1 + de)) * Se * Ce
+    R13, R23 = k * Cb, k * Sb
     R = jnp.array([[R11, R12, R13], [R12, R22, R23], [R13, R23, R33]])
     return pos, R
 
