@@ -371,11 +371,19 @@ def test_interrupted_run_leaves_previous_results_intact(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     (out / "stats.json").write_text("previous")
+    # a terminal's Ctrl-C reaches a process whose SIGINT is at its default; a test worker (or any
+    # background job) may hand its children an ignored SIGINT, so restore the default in the child
     proc = subprocess.Popen([*_command(), "run", "small.toml", "--runs", "100000000", "--out", "out", "--no-figures"],
-                            cwd=tmp_path, env=_ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            cwd=tmp_path, env=_ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     time.sleep(8)  # importing, validating, compiling, first chunks
     proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=120)
+    try:
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:  # never leave a 10⁸-run process behind
+            proc.kill()
+            proc.communicate()
     assert proc.returncode == 130, err
     assert "Traceback" not in err and "interrupted" in err
     assert (out / "stats.json").read_text() == "previous"
