@@ -129,6 +129,12 @@ SERVO = {
     "estimator": [{"label": "KF", "kind": "kf"}],
     "case": [{"mode": "on_axis", "estimator": "KF"}],
 }
+# an airborne-radar experiment (paper 001): the four-coordinate tracker in the antenna frame
+AIRBORNE = {
+    "experiment": {"name": "airborne", "runs": 2, "seed": 0},
+    "airborne": {"duration": 2.0},
+    "tracker": [{"label": "EKF", "kind": "cd_ekf"}],
+}
 SINE = {
     "experiment": {"name": "sine", "runs": 2, "seed": 0, "dt": 0.01, "steps": 50},
     "scenario": {"kind": "sine"},
@@ -378,6 +384,32 @@ CASES = [
     case("dekf-scale-length", edit(SINE, filter=[{"kind": "dekf", "scale": [1.0, 2.0]}]), "filter[1].scale", "[1.0, 2.0]",
          "3 values"),
     case("sine-negative-omega", edit(SINE, scenario={"kind": "sine", "omega": -0.6}), "scenario.omega", "-0.6", "> 0"),
+    # --- airborne-radar experiments ----------------------------------------------------------------
+    case("airborne-unknown-tracker", edit(AIRBORNE, tracker=[{"kind": "moose"}]), "tracker[1].kind", "moose", "cd_ekf"),
+    case("airborne-no-tracker", edit(AIRBORNE, drop=["tracker"]), "[tracker]", "None", "required"),
+    case("airborne-lam-zero", edit(AIRBORNE, tracker=[{"kind": "cd_ekf", "lam": 0.0}]), "tracker[1].lam", "0.0", "> 0"),
+    case("airborne-duplicate-label", edit(AIRBORNE, tracker=[{"kind": "cd_ekf"}, {"kind": "cd_ekf"}]), "tracker[2].label",
+         "cd_ekf", "unique"),
+    case("airborne-range-velocity", edit(AIRBORNE, tracker=[{"kind": "decoupled", "range_velocity": "joint"}]),
+         "tracker[1].range_velocity", "joint", "coupled, separate"),
+    case("airborne-classical-lam", edit(AIRBORNE, tracker=[{"kind": "classical", "lam": 3.0}]), "tracker[1].lam", "3.0",
+         "unknown field"),
+    case("airborne-q-scale-negative", edit(AIRBORNE, tracker=[{"kind": "cd_ekf", "q_scale": -100.0}]),
+         "tracker[1].q_scale", "-100.0", "> 0"),
+    case("airborne-duration-short", edit(AIRBORNE, airborne__duration=0.05), "airborne.duration", "0.05", "two filter periods"),
+    case("airborne-turn-direction", edit(AIRBORNE, engagement={"turn_direction": 0.5}), "engagement.turn_direction", "0.5",
+         "1 (left) or -1"),
+    case("airborne-collision", edit(AIRBORNE, engagement={"target_offset": 0.0, "target_height": 0.0, "turn_g": 0.0},
+                                    airborne__duration=60.0), "[engagement]", "m", "above 100 m"),
+    case("airborne-gains-length", edit(AIRBORNE, noise={"gains": [1.0, 1.0]}), "noise.gains", "[1.0, 1.0]", "4 positive"),
+    case("airborne-acquisition-outside-beam", edit(AIRBORNE, acquisition={"pointing": 40.0}), "acquisition.pointing", "40.0",
+         "beam half-width"),
+    case("airborne-disturbance-late", edit(AIRBORNE, disturbance={"time": 5.0, "pointing": 10.0}), "disturbance.time", "5.0",
+         "within the run"),
+    case("airborne-window-outside", to_toml(AIRBORNE) + "\n[report.windows]\nlate = [1.0, 9.0]\n", "report.windows.late",
+         "[1.0, 9.0]", "t1 <= 2"),
+    case("airborne-unknown-section", edit(AIRBORNE, sensor={"kind": "polar"}), "[sensor]", "...", "airborne experiment"),
+    case("airborne-singer-not-bool", edit(AIRBORNE, engagement={"singer": "yes"}), "engagement.singer", "yes", "true or false"),
     # --- imm ---------------------------------------------------------------------------------------
     case("imm-unknown-model", plus_filter(kind="imm", models=["cv", "singer"]), "filter[2].models", "['cv', 'singer']",
          "cv, ca, ct"),
@@ -507,6 +539,9 @@ def test_base_trajectory_config_is_valid(tmp_path):
         pytest.param(edit(sensor={"kind": "cartesian", "sigma": [10.0, 20.0]},
                           filter=[{"kind": "kf", "sigma": 15.0}, {"kind": "ekf", "model": "ca"}]), id="cartesian-2d"),
         pytest.param(edit(report__window=[10, 10], experiment__runs=1, experiment__steps=10), id="edge-window"),
+        pytest.param(edit(AIRBORNE, tracker=[{"kind": "classical"}, {"kind": "decoupled", "range_velocity": "separate"}],
+                          engagement={"turn_direction": -1.0, "turn_g": 0.0}, disturbance={"time": 1.0, "pointing": -5.0}),
+                     id="airborne-variants"),
     ],
 )
 def test_near_misses_are_accepted(tmp_path, cfg):

@@ -324,7 +324,7 @@ def write_servo_results(doc, folder: Path, figures=True):
 
 def load_servo_experiment(f: Path, raw: dict, section) -> ServoExperiment:
     """Validate a servo experiment file (``section``: config's typed table reader)."""
-    from tracklab.config import MAX_RUNS, NAME_RE
+    from tracklab.config import experiment_header
     from tracklab.servo.loops import MODES
 
     unknown = sorted(set(raw) - {"experiment", "servo", "target", "estimator", "case"})
@@ -333,13 +333,7 @@ def load_servo_experiment(f: Path, raw: dict, section) -> ServoExperiment:
     for sec in ("experiment", "target", "case"):
         if sec not in raw:
             raise ConfigError(f, f"[{sec}]", None, "section is required in a servo experiment")
-    ex = section(f, "experiment", raw["experiment"])
-    name = ex.string("name", required=True)
-    if not NAME_RE.fullmatch(name):
-        raise ConfigError(f, "experiment.name", name, "must be 1-100 characters of letters, digits, '_', '.', '-'")
-    runs = ex.integer("runs", required=True, lo=1, hi=MAX_RUNS)
-    seed = ex.integer("seed", 0, lo=0, hi=2**32 - 1)
-    ex.get("description")
+    name, runs, seed, ex = experiment_header(f, raw, section)
     ex.check_unknown()
     sv = section(f, "servo", raw["servo"])
     frames = sv.integer("frames", 3000, lo=10, hi=10_000_000)

@@ -1,0 +1,1 @@
+"""Airborne radar four-coordinate tracking in the antenna frame (paper 001)."""

@@ -1,0 +1,135 @@
+"""One closed-loop engagement: truth, antenna, radar error signals and a tracker, as one scan.
+
+Every tick (the radar's sample period) the tracker's rate command drives the
+gyro-stabilised antenna (first-order lag, ``boresight.antenna_motion``), the
+target moves (the nominal path plus, in Monte-Carlo runs, the exactly sampled
+Singer perturbation), and the radar forms its four error signals (eq. 4)
+against the tracker's gates:
+
+    ε_em = k_e·clip(ε_e) + v_e,  ε_dm = k_d·clip(ε_d) + v_d,
+    z_r = k_r·clip(r − r_gate) + v_r,  z_ṙ = k_ṙ·clip(ṙ − ṙ_gate) + v_ṙ,
+
+each clipped to its discriminator's linear range (the beam's and the gates'
+half-widths); a run whose target leaves the beam or a gate has lost lock and
+is counted, not averaged. Every ``n`` ticks the tracker updates and the true
+9-state at that instant is compared with its estimate. An optional jolt turns
+the antenna by a fixed angle about its d axis at one instant (a large error
+the trackers must recover from).
+
+``engage`` is one run (pure, ``vmap`` over keys); ``sums`` reduces a batch of
+runs to per-period sums for streaming statistics.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from tracklab.airborne.boresight import antenna_motion, los_frame, los_state, rotate
+from tracklab.airborne.engagement import Engagement, singer_block
+from tracklab.airborne.tracker import Timing, Tracker
+from tracklab.linalg import mahalanobis2
+
+
+class LoopConfig(NamedTuple):
+    timing: Timing
+    periods: int
+    k: tuple  # detector gains k_e, k_d, k_r, k_ṙ
+    sigma: tuple  # per-sample noise std of the four error signals (rad, rad, m, m/s, before the gains)
+    limits: tuple  # half-widths: beam (rad), range gate (m), velocity gate (m/s)
+    acquisition: tuple  # designation errors (std): ε (rad), ω (rad/s), r (m), ṙ (m/s)
+    jolt_tick: int = -1  # tick at which the antenna is jolted (-1: never)
+    jolt: float = 0.0  # rad, about the d axis
+    singer: bool = True  # add the Singer perturbation to the nominal path
+
+
+def prior_sd(cfg: LoopConfig, sigma_m, sigma_r):
+    """Standard deviations of the trackers' prior (the designation's errors, Singer σ for accelerations)."""
+    se, sw, sr, sv = cfg.acquisition
+    return np.array([se, sw, sigma_m, se, sw, sigma_m, sr, sv, sigma_r])
+
+
+def truth(eng: Engagement, t, s):
+    """Relative position, velocity, target and own accelerations at t (s: Singer state, axis × [p, v, a])."""
+    p_t, v_t, a_t = eng.target(t)
+    p_m, v_m, a_m = eng.own(t)
+    return p_t + s[:, 0] - p_m, v_t + s[:, 1] - v_m, a_t + s[:, 2], a_m
+
+
+def engage(eng: Engagement, tracker: Tracker, params, cfg: LoopConfig, sd0, key):
+    """One run: per filter period, the estimate's error (9), its NEES, the true pointing error and range."""
+    tm = cfg.timing
+    dt, n = tm.dt, tm.n
+    dtype = jnp.result_type(float)
+    phi, Q = singer_block(dt, eng.singer_tau, eng.singer_sigma)
+    L = np.linalg.cholesky(Q) if cfg.singer else np.zeros((3, 3))
+    phi, L = jnp.asarray(phi, dtype), jnp.asarray(L, dtype)
+    k = jnp.asarray(cfg.k, dtype)
+    sigma = jnp.asarray(cfg.sigma, dtype)
+    beam, gate_r, gate_v = cfg.limits
+    lo = -jnp.asarray([beam, beam, gate_r, gate_v], dtype)
+    sd0 = jnp.asarray(sd0, dtype)
+
+    k0, k1, k2, key = jax.random.split(key, 4)
+    a0 = jax.random.normal(k0, (3,), dtype) * (eng.singer_sigma if cfg.singer else 0.0)
+    s = jnp.zeros((3, 3), dtype).at[:, 2].set(a0)
+    rel_p, rel_v, a_t, a_m = truth(eng, jnp.zeros((), dtype), s)
+    eps0 = jax.random.normal(k1, (2,), dtype) * sd0[0]
+    C = rotate(los_frame(rel_p), jnp.stack([jnp.zeros((), dtype), eps0[1], eps0[0]]))
+    x_true0, _ = los_state(rel_p, rel_v, a_t, a_m, C)
+    x0 = x_true0 + jax.random.normal(k2, (9,), dtype) * sd0
+    x0 = x0.at[jnp.array([0, 3])].set(0.0).at[jnp.array([2, 5, 8])].set(0.0)  # ε̂ = 0: the antenna points at the designation
+    P0 = jnp.diag(sd0**2)
+    ts = tracker.start(params, x0, P0)
+
+    def one_tick(carry, inp):
+        ts, C, w, s, lost = carry
+        i, j, xi = inp
+        cmd, gates = tracker.tick(params, ts, i)
+        w_next, turn = antenna_motion(w, cmd, dt, tm.lag)
+        C = rotate(C, jnp.stack([jnp.zeros((), dtype), turn[1], turn[0]]))
+        C = jnp.where(j == cfg.jolt_tick, rotate(C, jnp.asarray([0.0, cfg.jolt, 0.0], dtype)), C)
+        s = s @ phi.T + xi[:9].reshape(3, 3) @ L.T
+        rel_p, rel_v, a_t, a_m = truth(eng, j * dt, s)
+        x, _ = los_state(rel_p, rel_v, a_t, a_m, C)
+        clean = jnp.stack([x[0], x[3], x[6] - gates[0], x[7] - gates[1]])
+        lost = lost | jnp.any(jnp.abs(clean) > -lo)
+        z = k * jnp.clip(clean, lo, -lo) + sigma * xi[9:]
+        ts = tracker.sample(params, ts, i, z)
+        return (ts, C, w_next, s, lost), x
+
+    def one_period(carry, p):
+        noise = jax.random.normal(jax.random.fold_in(key, p), (n, 13), dtype)
+        ticks = jnp.arange(n)
+        carry, xs = jax.lax.scan(one_tick, carry, (ticks, p * n + ticks + 1, noise))
+        ts, C, w, s, lost = carry
+        ts = tracker.update(params, ts, w)
+        x_hat, P = tracker.estimate(ts)
+        e = x_hat - xs[-1]
+        nees = mahalanobis2(P, e)
+        return (ts, C, w, s, lost), (e, nees, jnp.hypot(xs[-1, 0], xs[-1, 3]), xs[-1, 6])
+
+    carry = (ts, C, jnp.zeros(2, dtype), s, jnp.zeros((), bool))
+    (_, _, _, _, lost), (e, nees, point, r) = jax.lax.scan(one_period, carry, jnp.arange(cfg.periods))
+    return {"err": e, "nees": nees, "point": point, "range": r, "lost": lost}
+
+
+def sums(runs_out, live):
+    """Per-period sums over the runs in lock (``live`` masks padding): the streaming statistics' inputs."""
+    keep = live & ~runs_out["lost"]
+    w = keep[:, None].astype(runs_out["err"].dtype)
+    e = jnp.where(keep[:, None, None], runs_out["err"], 0.0)
+    nees = runs_out["nees"]
+    finite = keep[:, None] & jnp.isfinite(nees)
+    return {
+        "n": jnp.sum(w, axis=0),
+        "sum_e": jnp.sum(e, axis=0),
+        "sum_e2": jnp.sum(e**2, axis=0),
+        "sum_point2": jnp.sum(jnp.where(keep[:, None], runs_out["point"] ** 2, 0.0), axis=0),
+        "sum_nees": jnp.sum(jnp.where(finite, nees, 0.0), axis=0),
+        "n_nees": jnp.sum(finite, axis=0).astype(w.dtype),
+        "lost": jnp.sum(live & runs_out["lost"]),
+    }

@@ -1,0 +1,482 @@
+"""Airborne-radar experiments (paper 001): an experiment file with an ``[airborne]`` section.
+
+```toml
+[experiment]
+name = "airborne_radar"
+runs = 1000
+seed = 0
+
+[airborne]
+duration = 39.0          # s
+sample_dt = 0.01         # s, the radar's error-signal samples
+average = 5              # samples pre-averaged per filter period (50 ms)
+antenna_lag = 0.02       # s, the stabilised antenna's rate loop
+beam = 30.0              # mrad, half-width of the angle discriminators' linear range
+range_gate = 150.0       # m, half-width of the range gate
+velocity_gate = 15.0     # m/s, half-width of the velocity gate
+
+[engagement]             # tracklab.airborne.engagement.Engagement's fields (these are the defaults)
+own_speed = 250.0
+target_range = 20000.0
+target_offset = 3000.0
+target_height = -500.0
+target_speed = 300.0
+target_heading = 180.0
+turn_g = 4.0
+turn_start = 20.0
+turn_end = 30.0
+turn_direction = 1.0
+singer_sigma = 30.0      # m/s²; singer = false for the nominal path alone
+singer_tau = 10.0
+
+[noise]                  # per 10 ms sample, before the detector gains
+angle = 1.0              # mrad (glint included)
+range = 10.0             # m
+velocity = 1.0           # m/s
+gains = [1.0, 1.0, 1.0, 1.0]   # k_e, k_d, k_r, k_ṙ
+
+[acquisition]            # designation errors (std)
+pointing = 3.0           # mrad
+los_rate = 2.0           # mrad/s
+range = 30.0             # m
+range_rate = 3.0         # m/s
+
+[disturbance]            # optional: the antenna is jolted about its d axis
+time = 15.0              # s
+pointing = 10.0          # mrad
+
+[[tracker]]
+label = "joint EKF"
+kind = "cd_ekf"          # cd_ekf | decoupled | classical
+lam = 5.0                # 1/s, eq. 1's gain on ε̂ (cd_ekf, decoupled)
+q_scale = 1.0            # the filter's Q and R against the truth's (mismatch)
+r_scale = 1.0
+# decoupled: range_velocity = "coupled" | "separate"; model: sigma_m, tau, sigma_r, tau_r
+
+[report.windows]         # name = [t0, t1] s; defaults below when absent
+steady = [5.0, 20.0]
+```
+
+Every tracker sees the same runs (the same target path, designation errors
+and noise), so differences between trackers are paired.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+
+from tracklab.errors import ConfigError
+
+TRACKER_KINDS = ("cd_ekf", "decoupled", "classical")
+MRAD = 1e-3
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    label: str
+    kind: str
+    lam: float = 5.0
+    q_scale: float = 1.0
+    r_scale: float = 1.0
+    range_velocity: str = "coupled"
+    model: tuple = ()  # (sigma_m, tau, sigma_r, tau_r)
+
+
+@dataclass
+class AirborneExperiment:
+    path: Path
+    name: str
+    runs: int
+    seed: int
+    duration: float
+    sample_dt: float
+    average: int
+    antenna_lag: float
+    limits: tuple  # rad, m, m/s
+    engagement: object
+    singer: bool
+    noise: tuple  # rad, rad, m, m/s
+    gains: tuple
+    acquisition: tuple  # rad, rad/s, m, m/s
+    disturbance: tuple | None  # (time s, rad)
+    trackers: list
+    windows: dict  # name -> (t0, t1)
+    raw: dict
+    precision: str = "float64"
+    also_runs: tuple = ()
+    studies: list = field(default_factory=list)
+    chunk: int = 250
+
+    @property
+    def period(self) -> float:
+        return self.sample_dt * self.average
+
+    @property
+    def steps(self) -> int:
+        return int(round(self.duration / self.period))
+
+    @property
+    def window(self):
+        return (1, self.steps)
+
+    def loop_config(self):
+        from tracklab.airborne.closed_loop import LoopConfig
+        from tracklab.airborne.tracker import Timing
+
+        jolt_tick, jolt = -1, 0.0
+        if self.disturbance is not None:
+            jolt_tick, jolt = int(round(self.disturbance[0] / self.sample_dt)), self.disturbance[1]
+        return LoopConfig(Timing(self.sample_dt, self.average, self.antenna_lag), self.steps, self.gains, self.noise,
+                          self.limits, self.acquisition, jolt_tick, jolt, self.singer)
+
+    def build(self, tc: TrackerConfig):
+        """(tracker, params) of one [[tracker]] table."""
+        import jax.numpy as jnp
+
+        from tracklab.airborne.boresight import ModelParams
+        from tracklab.airborne.cd_ekf import CDParams, cd_ekf
+        from tracklab.airborne.classical import ClassicalParams, classical, loop_gains
+        from tracklab.airborne.decoupled import decoupled
+
+        timing = self.loop_config().timing
+        k = jnp.asarray(self.gains, float)
+        if tc.kind == "classical":
+            g_r, g_v = loop_gains(self.engagement.singer_sigma, self.engagement.singer_tau, self.noise[2], self.noise[3], timing)
+            return classical(timing), ClassicalParams(k, g_r, g_v)
+        sm, tau, sr, tr = tc.model or (self.engagement.singer_sigma, self.engagement.singer_tau,
+                                       self.engagement.singer_sigma, self.engagement.singer_tau)
+        q = math.sqrt(tc.q_scale)  # Q ∝ σ²
+        mp = ModelParams(*(jnp.asarray(v, float) for v in (q * sm, tau, q * sr, tr)))
+        r = tc.r_scale * (k * jnp.asarray(self.noise, float)) ** 2
+        params = CDParams(mp, r, k, jnp.asarray(tc.lam, float))
+        tracker = cd_ekf(timing) if tc.kind == "cd_ekf" else decoupled(timing, tc.range_velocity == "separate")
+        return tracker, params
+
+    def nominal_range(self):
+        t = self.period * np.arange(1, self.steps + 1)
+        e = self.engagement
+        return np.linalg.norm(np.asarray(e.target(t)[0] - e.own(t)[0]), axis=-1)
+
+    def monte_carlo(self, runs=None, seed=None, progress=None, precision=None):
+        """Per-period sums over runs for every tracker: {label: sums}, wall and compile seconds."""
+        import jax
+        import jax.numpy as jnp
+
+        from tracklab.airborne.closed_loop import engage, prior_sd, sums
+
+        runs = runs or self.runs
+        seed = self.seed if seed is None else seed
+        precision = precision or self.precision
+        cfg = self.loop_config()
+        out, compile_s = {}, 0.0
+        t_start = time.perf_counter()
+        chunk = min(self.chunk, runs)
+        n_chunks = -(-runs // chunk)
+        with jax.enable_x64(precision == "float64"):
+            dtype = jnp.result_type(float)
+            keys = jax.random.split(jax.random.key(seed), n_chunks * chunk)
+            live_all = np.arange(n_chunks * chunk) < runs
+            for ti, tc in enumerate(self.trackers):
+                tracker, params = self.build(tc)
+                params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), params)
+                sd0 = prior_sd(cfg, *((tc.model[0], tc.model[2]) if tc.model else (self.engagement.singer_sigma,) * 2))
+
+                @jax.jit
+                def batch(keys, live, params=params, tracker=tracker):
+                    res = jax.vmap(lambda k: engage(self.engagement, tracker, params, cfg, sd0, k))(keys)
+                    return sums(res, live)
+
+                acc = None
+                for c in range(n_chunks):
+                    t0 = time.perf_counter()
+                    s = jax.device_get(batch(keys[c * chunk:(c + 1) * chunk], jnp.asarray(live_all[c * chunk:(c + 1) * chunk])))
+                    if c == 0 and ti == 0:
+                        compile_s = time.perf_counter() - t0
+                    s = {k: np.asarray(v, np.float64) for k, v in s.items()}
+                    acc = s if acc is None else {k: acc[k] + s[k] for k in acc}
+                    if progress:
+                        progress(ti * runs + min((c + 1) * chunk, runs), len(self.trackers) * runs)
+                out[tc.label] = acc
+        return out, time.perf_counter() - t_start, compile_s
+
+    def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None):
+        from tracklab.report import atomic_folder, results_folder
+
+        out = results_folder(self, out)
+        runs = runs or self.runs
+        acc, wall, compile_s = self.monte_carlo(runs, seed, progress, precision)
+        doc = self.document(acc, runs, wall, compile_s, precision or self.precision)
+        with atomic_folder(out) as tmp:
+            write_airborne_results(doc, tmp, figures)
+        return doc
+
+    def window_masks(self):
+        t = self.period * np.arange(1, self.steps + 1)
+        masks = {}
+        for name, (t0, t1) in self.windows.items():
+            masks[name] = (t >= t0 - 1e-9) & (t <= t1 + 1e-9)
+        return t, masks
+
+    def document(self, acc, runs, wall, compile_s, precision):
+        from tracklab.metrics import average_chi2_interval
+
+        t, masks = self.window_masks()
+        steady = masks.get("steady")
+        trackers = {}
+        for tc in self.trackers:
+            s = acc[tc.label]
+            n = np.maximum(s["n"], 1.0)
+            ms = s["sum_e2"] / n[:, None]
+            series = {
+                "pointing": np.sqrt(s["sum_point2"] / n) / MRAD,  # mrad, the true boresight-to-LOS angle
+                "pointing_estimate": np.sqrt(ms[:, 0] + ms[:, 3]) / MRAD,
+                "los_rate": np.sqrt(ms[:, 1] + ms[:, 4]) / MRAD,  # mrad/s
+                "range": np.sqrt(ms[:, 6]),
+                "range_rate": np.sqrt(ms[:, 7]),
+                "range_bias": s["sum_e"][:, 6] / n,
+                "nees": np.where(s["n_nees"] > 0, s["sum_nees"] / np.maximum(s["n_nees"], 1.0), np.nan),
+            }
+            summary = {"runs": int(runs), "diverged": int(s["lost"]), "lost_lock": int(s["lost"])}
+            for name, m in masks.items():
+                for key in ("pointing", "pointing_estimate", "los_rate", "range", "range_rate"):
+                    summary[f"{key}[{name}]"] = float(np.sqrt(np.mean(series[key][m] ** 2)))
+                nees = series["nees"][m]
+                summary[f"nees[{name}]"] = float(np.mean(nees)) if np.all(np.isfinite(nees)) else None
+            all_steps = np.ones_like(t, bool)
+            summary["rmse_pos"] = float(np.sqrt(np.mean(series["pointing"][all_steps] ** 2)))
+            summary["rmse_vel"] = float(np.sqrt(np.mean(series["los_rate"] ** 2)))
+            if np.all(np.isfinite(series["nees"])):
+                lo, hi = average_chi2_interval(9, float(np.min(s["n_nees"])))
+                summary["nees"] = float(np.mean(series["nees"]))
+                summary["nees_in_bounds"] = float(np.mean((series["nees"] >= lo) & (series["nees"] <= hi)))
+            if steady is not None:
+                level = float(np.sqrt(np.mean(series["los_rate"][steady] ** 2)))
+                events = [("acquisition", 0.0)] + ([("disturbance", self.disturbance[0])] if self.disturbance else [])
+                for name, t_e in events:
+                    summary[f"settle[{name}]"] = settling_time(t, series["los_rate"], t_e, 1.5 * level)
+            trackers[tc.label] = {"kind": tc.kind, "label": tc.label, "summary": summary, "series": series}
+        return {
+            "name": self.name, "runs": runs, "steps": self.steps, "dt": self.period, "window": [1, self.steps],
+            "series_stride": 1, "units": ["mrad", "mrad/s"], "axes": ["e", "d"], "windows": list(self.windows),
+            "wall_s": wall, "compile_s": compile_s, "precision": precision, "experiment": self.raw,
+            "t": t, "nominal_range": self.nominal_range(), "filters": trackers,
+        }
+
+
+def settling_time(t, series, t_event, level, hold=1.0):
+    """Seconds after t_event until ``series`` stays ≤ level for ``hold`` seconds (NaN if it never does)."""
+    after = t >= t_event
+    ok = (series <= level) & after
+    dt = t[1] - t[0] if len(t) > 1 else 1.0
+    need = max(1, int(round(hold / dt)))
+    run = 0
+    for i in np.nonzero(after)[0]:
+        run = run + 1 if ok[i] else 0
+        if run >= need:
+            return float(t[i - need + 1] - t_event)
+    return float("nan")
+
+
+SUMMARY_TABLES = [  # (key, title, format)
+    ("pointing", "true pointing error RMS (mrad)", "{:.3f}"),
+    ("pointing_estimate", "pointing-error estimate, error RMS (mrad)", "{:.3f}"),
+    ("los_rate", "LOS-rate error RMS (mrad/s)", "{:.3f}"),
+    ("range", "range error RMS (m)", "{:.2f}"),
+    ("range_rate", "range-rate error RMS (m/s)", "{:.3f}"),
+    ("nees", "NEES (9 states; 95 % band about 9)", "{:.2f}"),
+]
+
+
+def airborne_tables(doc) -> str:
+    """Markdown: one table per quantity, a column per window; then settling times and lost lock."""
+    from tracklab.report import _fmt
+
+    windows = doc["windows"]
+    out = [f"# {doc['name']}: {doc['runs']} runs, {doc['steps']} filter periods of {doc['dt'] * 1e3:.0f} ms\n"]
+    for key, title, spec in SUMMARY_TABLES:
+        out.append(f"\n## {title}\n\n| tracker | kind | " + " | ".join(windows) + " |\n|---|---|" + "---|" * len(windows))
+        for label, f in doc["filters"].items():
+            cells = [_fmt(f["summary"].get(f"{key}[{w}]"), spec) for w in windows]
+            out.append(f"| {label} | {f['kind']} | " + " | ".join(cells) + " |")
+    events = sorted({k[7:-1] for f in doc["filters"].values() for k in f["summary"] if k.startswith("settle[")})
+    out.append("\n## Settling and lock\n\nSettling: seconds until the LOS-rate error RMS stays within 1.5× its "
+               "steady-window value for 1 s.\n\n| tracker | " + " | ".join(f"settle after {e} (s)" for e in events)
+               + " | lost lock (runs) |\n|---|" + "---|" * (len(events) + 1))
+    for label, f in doc["filters"].items():
+        cells = [_fmt(f["summary"].get(f"settle[{e}]"), "{:.2f}") for e in events]
+        out.append(f"| {label} | " + " | ".join(cells) + f" | {f['summary']['lost_lock']} |")
+    return "\n".join(out) + "\n"
+
+
+def write_airborne_results(doc, folder: Path, figures=True):
+    from tracklab.report import _jsonable, csv_table
+
+    (folder / "stats.json").write_text(json.dumps(_jsonable(doc), separators=(",", ":"), allow_nan=False) + "\n")
+    (folder / "table.md").write_text(airborne_tables(doc))
+    (folder / "table.csv").write_text(csv_table(doc))
+    if not figures:
+        return
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t, rng = np.asarray(doc["t"]), np.asarray(doc["nominal_range"]) / 1e3
+    panels = [
+        ("pointing_error.png", [("pointing", "true pointing error RMS (mrad)")], "paper 001 Fig. 3"),
+        ("rate_error.png", [("los_rate", "LOS-rate error RMS (mrad/s)"), ("range_rate", "range-rate error RMS (m/s)")],
+         "paper 001 Fig. 4"),
+        ("range_error.png", [("range", "range error RMS (m)"), ("range_rate", "range-rate error RMS (m/s)")],
+         "paper 001 Fig. 6"),
+    ]
+    for name, rows, ref in panels:
+        fig, axes = plt.subplots(len(rows), 1, figsize=(9, 3.2 * len(rows)), squeeze=False, sharex=True)
+        for ax, (key, ylabel) in zip(axes[:, 0], rows):
+            for label, f in doc["filters"].items():
+                ax.plot(t, np.asarray(f["series"][key], float), lw=0.9, label=label)
+            ax.set_ylabel(ylabel)
+            ax.set_yscale("log")
+            ax.grid(True, which="both", alpha=0.3)
+        top = axes[0, 0].secondary_xaxis("top", functions=(lambda x: np.interp(x, t, rng), lambda r: np.interp(r, rng[::-1], t[::-1])))
+        top.set_xlabel("nominal range (km)")
+        axes[-1, 0].set_xlabel("time (s)")
+        axes[0, 0].legend(fontsize=7)
+        axes[0, 0].set_title(f"{doc['name']}: {doc['runs']} runs ({ref})", fontsize=9)
+        fig.tight_layout()
+        fig.savefig(folder / name, dpi=110)
+        plt.close(fig)
+
+
+def _read_windows(f, raw_report, duration, disturbance):
+    defaults = {"acquisition": (0.0, 2.0), "steady": (5.0, 20.0), "turn": (20.0, 30.0),
+                "close": (max(duration - 4.0, 0.0), duration)}
+    if disturbance is not None:
+        defaults["disturbance"] = (disturbance[0], disturbance[0] + 2.0)
+    if raw_report is None:
+        return defaults
+    if not isinstance(raw_report, dict) or set(raw_report) - {"windows"}:
+        raise ConfigError(f, "[report]", raw_report, "an airborne experiment's [report] holds only windows")
+    table = raw_report.get("windows", {})
+    if not isinstance(table, dict) or not table:
+        raise ConfigError(f, "report.windows", table, "must be a table: name = [t0, t1] (seconds)")
+    from tracklab.config import WINDOW_NAME_RE
+
+    out = {}
+    for name, v in table.items():
+        if not WINDOW_NAME_RE.fullmatch(name):
+            raise ConfigError(f, f"report.windows.{name}", name, "window names are 1-40 letters, digits, spaces, '_.+-'")
+        if (not isinstance(v, list) or len(v) != 2
+                or any(isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) for x in v)
+                or not 0 <= v[0] < v[1] <= duration):
+            raise ConfigError(f, f"report.windows.{name}", v, f"must be [t0, t1] in seconds with 0 <= t0 < t1 <= {duration:g}")
+        out[name] = (float(v[0]), float(v[1]))
+    return out
+
+
+def load_airborne_experiment(f: Path, raw: dict, section) -> AirborneExperiment:
+    """Validate an airborne experiment file (``section``: config's typed table reader)."""
+    from tracklab.airborne.engagement import Engagement
+    from tracklab.config import experiment_header
+
+    allowed = {"experiment", "airborne", "engagement", "noise", "acquisition", "disturbance", "tracker", "report"}
+    unknown = sorted(set(raw) - allowed)
+    if unknown:
+        raise ConfigError(f, f"[{unknown[0]}]", "...", f"unknown section in an airborne experiment (allowed: {', '.join(sorted(allowed))})")
+    for sec in ("experiment", "tracker"):
+        if sec not in raw:
+            raise ConfigError(f, f"[{sec}]", None, "section is required in an airborne experiment")
+    name, runs, seed, ex = experiment_header(f, raw, section)
+    precision = ex.string("precision", "float64", choices=("float64", "float32"))
+    ex.check_unknown()
+    ab = section(f, "airborne", raw["airborne"])
+    duration = ab.number("duration", 39.0, positive=True, hi=3600.0)
+    sample_dt = ab.number("sample_dt", 0.01, positive=True, hi=1.0)
+    average = ab.integer("average", 5, lo=1, hi=1000)
+    if duration < 2 * sample_dt * average:
+        raise ConfigError(f, "airborne.duration", duration, f"must hold at least two filter periods ({2 * sample_dt * average:g} s)")
+    lag = ab.number("antenna_lag", 0.02, positive=True, hi=10.0)
+    limits = (ab.number("beam", 30.0, positive=True, hi=1000.0) * MRAD, ab.number("range_gate", 150.0, positive=True),
+              ab.number("velocity_gate", 15.0, positive=True))
+    ab.check_unknown()
+    eg = section(f, "engagement", raw.get("engagement", {}))
+    kw = {}
+    for fld in fields(Engagement):
+        if fld.name == "turn_direction":
+            if eg.has(fld.name):
+                v = eg.number(fld.name)
+                if v not in (1.0, -1.0):
+                    raise ConfigError(f, "engagement.turn_direction", v, "must be 1 (left) or -1 (right)")
+                kw[fld.name] = v
+        elif fld.name in ("target_offset", "target_height", "target_heading"):
+            kw[fld.name] = eg.number(fld.name, fld.default)
+        elif fld.name == "turn_g":
+            kw[fld.name] = eg.number(fld.name, fld.default, nonneg=True, hi=20.0)
+        else:
+            kw[fld.name] = eg.number(fld.name, fld.default, positive=True)
+    singer = eg.get("singer", True)
+    if not isinstance(singer, bool):
+        raise ConfigError(f, "engagement.singer", singer, "must be true or false")
+    eg.check_unknown()
+    eng = Engagement(**kw)
+    if eng.turn_end < eng.turn_start:
+        raise ConfigError(f, "engagement.turn_end", eng.turn_end, f"must be >= turn_start ({eng.turn_start:g})")
+    t = np.arange(0.0, duration + 1e-9, sample_dt)
+    r_min = float(np.min(np.linalg.norm(np.asarray(eng.target(t)[0] - eng.own(t)[0]), axis=-1)))
+    if r_min < 100.0:
+        raise ConfigError(f, "[engagement]", f"{r_min:.0f} m", "the nominal range must stay above 100 m for the whole run")
+    nz = section(f, "noise", raw.get("noise", {}))
+    noise = (nz.number("angle", 1.0, positive=True) * MRAD,) * 2 + (nz.number("range", 10.0, positive=True),
+                                                                   nz.number("velocity", 1.0, positive=True))
+    gains = nz.get("gains", [1.0, 1.0, 1.0, 1.0])
+    if (not isinstance(gains, list) or len(gains) != 4
+            or any(isinstance(g, bool) or not isinstance(g, (int, float)) or not math.isfinite(g) or g <= 0 for g in gains)):
+        raise ConfigError(f, "noise.gains", gains, "must be 4 positive numbers: k_e, k_d, k_r, k_rdot")
+    nz.check_unknown()
+    aq = section(f, "acquisition", raw.get("acquisition", {}))
+    acquisition = (aq.number("pointing", 3.0, nonneg=True) * MRAD, aq.number("los_rate", 2.0, nonneg=True) * MRAD,
+                   aq.number("range", 30.0, nonneg=True), aq.number("range_rate", 3.0, nonneg=True))
+    aq.check_unknown()
+    if acquisition[0] >= limits[0]:
+        raise ConfigError(f, "acquisition.pointing", acquisition[0] / MRAD, f"must be below the beam half-width ({limits[0] / MRAD:g} mrad)")
+    disturbance = None
+    if "disturbance" in raw:
+        ds = section(f, "disturbance", raw["disturbance"])
+        dt_ = ds.number("time", required=True, positive=True)
+        if dt_ >= duration:
+            raise ConfigError(f, "disturbance.time", dt_, f"must be within the run (< {duration:g} s)")
+        disturbance = (dt_, ds.number("pointing", required=True, hi=1000.0, lo=-1000.0) * MRAD)
+        ds.check_unknown()
+    tables = raw["tracker"]
+    if not isinstance(tables, list) or not tables:
+        raise ConfigError(f, "[[tracker]]", tables, "at least one [[tracker]] table is required")
+    trackers, labels = [], set()
+    for i, table in enumerate(tables, start=1):
+        ts = section(f, f"tracker[{i}]", table)
+        kind = ts.string("kind", required=True, choices=TRACKER_KINDS)
+        label = ts.string("label", kind)
+        if label in labels:
+            raise ConfigError(f, f"tracker[{i}].label", label, "must be unique among the trackers")
+        labels.add(label)
+        if kind == "classical":
+            ts.check_unknown()
+            trackers.append(TrackerConfig(label, kind))
+            continue
+        lam = ts.number("lam", 5.0, positive=True, hi=1000.0)
+        q_scale = ts.number("q_scale", 1.0, positive=True)
+        r_scale = ts.number("r_scale", 1.0, positive=True)
+        rv = ts.string("range_velocity", "coupled", choices=("coupled", "separate")) if kind == "decoupled" else "coupled"
+        model = ()
+        if any(ts.has(k) for k in ("sigma_m", "tau", "sigma_r", "tau_r")):
+            model = (ts.number("sigma_m", eng.singer_sigma, positive=True), ts.number("tau", eng.singer_tau, positive=True),
+                     ts.number("sigma_r", eng.singer_sigma, positive=True), ts.number("tau_r", eng.singer_tau, positive=True))
+        ts.check_unknown()
+        trackers.append(TrackerConfig(label, kind, lam, q_scale, r_scale, rv, model))
+    windows = _read_windows(f, raw.get("report"), duration, disturbance)
+    return AirborneExperiment(f, name, runs, seed, duration, sample_dt, average, lag, limits, eng, singer, noise,
+                              tuple(float(g) for g in gains), acquisition, disturbance, trackers, windows, raw, precision)
