@@ -264,3 +264,32 @@ def test_airborne_experiment_writes_results_and_float32_agrees(tmp_path):
         a, b = doc["filters"][label]["summary"], doc32["filters"][label]["summary"]
         for key in ("pointing[steady]", "los_rate[steady]", "range[steady]", "range_rate[steady]"):
             assert b[key] == pytest.approx(a[key], rel=0.05), (label, key)
+
+
+def test_moose_that_cannot_switch_is_the_joint_ekf():
+    """With p_stay = 1 the bank keeps its initial zero level: Moose's shifts and spread vanish and it is the joint EKF.
+
+    (The merged level of a bank that can switch is pulled by every level with any probability, so an
+    absurd level is not harmless: it must be impossible.)"""
+    from tracklab.airborne.moose import MooseParams, moose
+
+    tm = Timing(0.01, 5, 0.02)
+    mp = ModelParams(*(jnp.asarray(v) for v in (30.0, 10.0, 30.0, 10.0)))
+    base = CDParams(mp, jnp.array([1e-6, 1e-6, 100.0, 1.0]), jnp.ones(4), jnp.asarray(5.0))
+    mparams = MooseParams(base, jnp.array([-40.0, 0.0, 40.0]), jnp.asarray(1.0))
+    x0 = jnp.array([1e-3, 0.01, 0.0, -2e-3, -0.005, 0.0, 10_000.0, -300.0, 0.0])
+    P0 = jnp.diag(jnp.array([3e-3, 2e-3, 30.0, 3e-3, 2e-3, 30.0, 30.0, 3.0, 30.0]) ** 2)
+    z = 1e-3 * jax.random.normal(jax.random.key(0), (3, tm.n, 4)) * jnp.array([1.0, 1.0, 1e4, 1e3])
+
+    def run(tr, params):
+        def period(s, zs):
+            for i in range(tm.n):
+                s = tr.sample(params, s, i, zs[i])
+            s = tr.update(params, s, jnp.array([0.01, -0.004]))
+            return s, tr.estimate(s)
+
+        return jax.lax.scan(period, tr.start(params, x0, P0), z)[1]
+
+    (xe, Pe), (xm, Pm) = jax.jit(lambda: (run(cd_ekf(tm), base), run(moose(tm), mparams)))()
+    np.testing.assert_allclose(np.asarray(xm), np.asarray(xe), rtol=1e-10, atol=1e-13)
+    np.testing.assert_allclose(np.asarray(Pm), np.asarray(Pe), rtol=1e-10, atol=1e-16)

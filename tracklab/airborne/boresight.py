@@ -53,14 +53,19 @@ class ModelParams(NamedTuple):
     tau_r: jax.Array  # s
 
 
-def drift(x, w_a, a_m, mp: ModelParams):
-    """ẋ = f(x, u) (eq. 3 without noise); w_a = (ω_Ae, ω_Ad), a_m = (a_Me, a_Md, a_Mr)."""
+def drift(x, w_a, a_m, mp: ModelParams, levels=None):
+    """ẋ = f(x, u) (eq. 3 without noise); w_a = (ω_Ae, ω_Ad), a_m = (a_Me, a_Md, a_Mr).
+
+    ``levels`` u = (u_e, u_d, u_r) are Moose's manoeuvre commands: mean
+    accelerations added to the Singer ones where they drive ω and r̈.
+    """
+    u = jnp.zeros(3, x.dtype) if levels is None else levels
     r, rdot = x[R], x[RDOT]
     eps_dot = x[jnp.array(OMEGA)] - w_a
     omega = x[jnp.array(OMEGA)]
-    omega_dot = -2.0 * rdot / r * omega + (x[jnp.array(ACC)] - a_m[:2]) / r
+    omega_dot = -2.0 * rdot / r * omega + (x[jnp.array(ACC)] + u[:2] - a_m[:2]) / r
     acc_dot = -x[jnp.array(ACC)] / mp.tau
-    r_ddot = r * jnp.sum(omega**2) + x[AR] - a_m[2]
+    r_ddot = r * jnp.sum(omega**2) + x[AR] + u[2] - a_m[2]
     return jnp.stack([eps_dot[0], omega_dot[0], acc_dot[0], eps_dot[1], omega_dot[1], acc_dot[1],
                       rdot, r_ddot, -x[AR] / mp.tau_r])
 

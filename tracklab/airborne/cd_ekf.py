@@ -47,36 +47,37 @@ class CDState(NamedTuple):
     zsum: jax.Array  # (4,) error signals summed over the period
 
 
-def rk4_tick(x, P, w0, cmd, dt, lag, mp: ModelParams):
-    """Mean and covariance over one sample period (eqs. 10–11), RK4 on the pair; and ∂x(t+dt)/∂x(t)."""
-    GQG = process_noise(mp)
+def _rk4(f, x, h):
+    k1 = f(0.0, x)
+    k2 = f(h / 2, x + h / 2 * k1)
+    k3 = f(h / 2, x + h / 2 * k2)
+    k4 = f(h, x + h * k3)
+    return x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+
+def mean_tick(x, u, w0, cmd, dt, lag, mp: ModelParams):
+    """The mean over one sample period (eq. 10, RK4); u: the accelerations' mean levels (Moose), else zeros."""
     a_m = jnp.zeros(3, x.dtype)  # the own aircraft flies straight (INS input zero)
+    return _rk4(lambda s, y: drift(y, antenna_rate_at(w0, cmd, s, lag), a_m, mp, u), x, dt)
 
-    def deriv(s, x, P):
+
+def rk4_tick(x, P, w0, cmd, dt, lag, mp: ModelParams, u=None):
+    """Mean and covariance over one sample period (eqs. 10–11), RK4 on the pair; and ∂x(t+dt)/∂(x, u)."""
+    GQG = process_noise(mp)
+    a_m = jnp.zeros(3, x.dtype)
+    u = jnp.zeros(3, x.dtype) if u is None else u
+    pair = jnp.concatenate([x, jnp.ravel(P)])
+
+    def deriv(s, y):
         w = antenna_rate_at(w0, cmd, s, lag)
-        f = lambda y: drift(y, w, a_m, mp)
+        f = lambda z: drift(z, w, a_m, mp, u)
+        x, P = y[:9], y[9:].reshape(9, 9)
         F = jax.jacfwd(f)(x)
-        return f(x), F @ P + P @ F.T + GQG
+        return jnp.concatenate([f(x), jnp.ravel(F @ P + P @ F.T + GQG)])
 
-    def step(x, P):
-        h = dt
-        k1 = deriv(0.0, x, P)
-        k2 = deriv(h / 2, x + h / 2 * k1[0], P + h / 2 * k1[1])
-        k3 = deriv(h / 2, x + h / 2 * k2[0], P + h / 2 * k2[1])
-        k4 = deriv(h, x + h * k3[0], P + h * k3[1])
-        return x + h / 6 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0]), P + h / 6 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
-
-    def mean_step(x):
-        h = dt
-        f = lambda s, y: drift(y, antenna_rate_at(w0, cmd, s, lag), a_m, mp)
-        k1 = f(0.0, x)
-        k2 = f(h / 2, x + h / 2 * k1)
-        k3 = f(h / 2, x + h / 2 * k2)
-        k4 = f(h, x + h * k3)
-        return x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-
-    x_next, P_next = step(x, P)
-    return x_next, symmetrise(P_next), jax.jacfwd(mean_step)(x)
+    out = _rk4(deriv, pair, dt)
+    J = jax.jacfwd(lambda xu: mean_tick(xu[:9], xu[9:], w0, cmd, dt, lag, mp))(jnp.concatenate([x, u]))
+    return out[:9], symmetrise(out[9:].reshape(9, 9)), J
 
 
 def command(x, lam):
@@ -84,20 +85,23 @@ def command(x, lam):
     return x[jnp.array(OMEGA)] + lam * x[jnp.array(EPS)]
 
 
-def predict_period(x, P, w_a, cmd, timing: Timing, mp: ModelParams):
-    """Predictions at the n samples of the next period and the covariance at its end."""
+def predict_period(x, P, w_a, cmd, timing: Timing, mp: ModelParams, u=None):
+    """Predictions at the n samples of the next period, the covariance at its end, the averaged samples'
+    referral to the end (``CDState.refer``) and the end state's sensitivity to the mean levels u (9 × 3)."""
 
     def step(carry, _):
-        x, P, w, M = carry
-        x, P, F = rk4_tick(x, P, w, cmd, timing.dt, timing.lag, mp)
+        x, P, w, M, G = carry
+        x, P, J = rk4_tick(x, P, w, cmd, timing.dt, timing.lag, mp, u)
         w, _ = antenna_motion(w, cmd, timing.dt, timing.lag)
-        M = F @ M  # Φ(tᵢ, t_start)
-        return (x, P, w, M), (x, M)
+        M = J[:, :9] @ M  # Φ(tᵢ, t_start)
+        G = J[:, :9] @ G + J[:, 9:]
+        return (x, P, w, M, G), (x, M)
 
     eye = jnp.eye(x.shape[0], dtype=x.dtype)
-    (_, P_end, _, M_end), (pred, Ms) = jax.lax.scan(step, (x, P, w_a, eye), None, length=timing.n)
+    init = (x, P, w_a, eye, jnp.zeros((9, 3), x.dtype))
+    (_, P_end, _, M_end, G_end), (pred, Ms) = jax.lax.scan(step, init, None, length=timing.n)
     refer = jnp.linalg.solve(M_end.T, jnp.mean(Ms, axis=0).T).T  # (1/n Σ Mᵢ) M_end⁻¹
-    return pred, P_end, refer
+    return pred, P_end, refer, G_end
 
 
 def cd_ekf(timing: Timing) -> Tracker:
@@ -105,7 +109,7 @@ def cd_ekf(timing: Timing) -> Tracker:
 
     def plan(params, x, P, w_a):
         cmd = command(x, params.lam)
-        pred, P_end, refer = predict_period(x, P, w_a, cmd, timing, params.model)
+        pred, P_end, refer, _ = predict_period(x, P, w_a, cmd, timing, params.model)
         return CDState(x, P, pred, P_end, refer, cmd, jnp.zeros(4, x.dtype))
 
     def start(params, x0, P0):

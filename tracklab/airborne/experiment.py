@@ -47,11 +47,12 @@ pointing = 10.0          # mrad
 
 [[tracker]]
 label = "joint EKF"
-kind = "cd_ekf"          # cd_ekf | decoupled | classical
+kind = "cd_ekf"          # cd_ekf | decoupled | classical | moose
 lam = 5.0                # 1/s, eq. 1's gain on ε̂ (cd_ekf, decoupled)
 q_scale = 1.0            # the filter's Q and R against the truth's (mismatch)
 r_scale = 1.0
 # decoupled: range_velocity = "coupled" | "separate"; model: sigma_m, tau, sigma_r, tau_r
+# moose: levels = [-40.0, -20.0, 0.0, 20.0, 40.0] (m/s²), p_stay = 0.99 (per filter period: a 5 s mean sojourn)
 
 [report.windows]         # name = [t0, t1] s; defaults below when absent
 steady = [5.0, 20.0]
@@ -73,7 +74,7 @@ import numpy as np
 
 from tracklab.errors import ConfigError
 
-TRACKER_KINDS = ("cd_ekf", "decoupled", "classical")
+TRACKER_KINDS = ("cd_ekf", "decoupled", "classical", "moose")
 MRAD = 1e-3
 
 
@@ -86,6 +87,8 @@ class TrackerConfig:
     r_scale: float = 1.0
     range_velocity: str = "coupled"
     model: tuple = ()  # (sigma_m, tau, sigma_r, tau_r)
+    levels: tuple = ()  # moose: mean-acceleration levels (m/s²)
+    p_stay: float = 0.99
 
 
 @dataclass
@@ -143,6 +146,7 @@ class AirborneExperiment:
         from tracklab.airborne.cd_ekf import CDParams, cd_ekf
         from tracklab.airborne.classical import ClassicalParams, classical, loop_gains
         from tracklab.airborne.decoupled import decoupled
+        from tracklab.airborne.moose import MooseParams, moose
 
         timing = self.loop_config().timing
         k = jnp.asarray(self.gains, float)
@@ -155,6 +159,8 @@ class AirborneExperiment:
         mp = ModelParams(*(jnp.asarray(v, float) for v in (q * sm, tau, q * sr, tr)))
         r = tc.r_scale * (k * jnp.asarray(self.noise, float)) ** 2
         params = CDParams(mp, r, k, jnp.asarray(tc.lam, float))
+        if tc.kind == "moose":
+            return moose(timing), MooseParams(params, jnp.asarray(tc.levels, float), jnp.asarray(tc.p_stay, float))
         tracker = cd_ekf(timing) if tc.kind == "cd_ekf" else decoupled(timing, tc.range_velocity == "separate")
         return tracker, params
 
@@ -357,9 +363,9 @@ def _read_windows(f, raw_report, duration, disturbance):
     defaults = {"acquisition": (0.0, 2.0), "steady": (5.0, 20.0), "turn": (20.0, 30.0),
                 "close": (max(duration - 4.0, 0.0), duration)}
     if disturbance is not None:
-        defaults["disturbance"] = (disturbance[0], disturbance[0] + 2.0)
+        defaults["disturbance"] = (disturbance[0], min(disturbance[0] + 2.0, duration))
     if raw_report is None:
-        return defaults
+        return {k: v for k, v in defaults.items() if v[0] < duration}
     if not isinstance(raw_report, dict) or set(raw_report) - {"windows"}:
         raise ConfigError(f, "[report]", raw_report, "an airborne experiment's [report] holds only windows")
     table = raw_report.get("windows", {})
@@ -475,8 +481,19 @@ def load_airborne_experiment(f: Path, raw: dict, section) -> AirborneExperiment:
         if any(ts.has(k) for k in ("sigma_m", "tau", "sigma_r", "tau_r")):
             model = (ts.number("sigma_m", eng.singer_sigma, positive=True), ts.number("tau", eng.singer_tau, positive=True),
                      ts.number("sigma_r", eng.singer_sigma, positive=True), ts.number("tau_r", eng.singer_tau, positive=True))
+        levels, p_stay = (), 0.99
+        if kind == "moose":
+            levels = ts.get("levels", [-40.0, -20.0, 0.0, 20.0, 40.0])
+            if (not isinstance(levels, list) or not 2 <= len(levels) <= 21 or len(set(levels)) != len(levels)
+                    or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or abs(v) > 1000
+                           for v in levels)):
+                raise ConfigError(f, f"tracker[{i}].levels", levels, "must be 2-21 distinct numbers (m/s²) of magnitude <= 1000")
+            levels = tuple(float(v) for v in levels)
+            p_stay = ts.number("p_stay", 0.99)
+            if not 0.0 < p_stay < 1.0:
+                raise ConfigError(f, f"tracker[{i}].p_stay", p_stay, "must be in (0, 1)")
         ts.check_unknown()
-        trackers.append(TrackerConfig(label, kind, lam, q_scale, r_scale, rv, model))
+        trackers.append(TrackerConfig(label, kind, lam, q_scale, r_scale, rv, model, levels, p_stay))
     windows = _read_windows(f, raw.get("report"), duration, disturbance)
     return AirborneExperiment(f, name, runs, seed, duration, sample_dt, average, lag, limits, eng, singer, noise,
                               tuple(float(g) for g in gains), acquisition, disturbance, trackers, windows, raw, precision)
