@@ -1,6 +1,6 @@
 """Throughput, compile time and peak memory of the lidar experiment.
 
-    python benchmarks/bench_lidar.py            # full benchmark (~5-8 min on 2 cores), writes benchmarks/results.md
+    python benchmarks/bench_lidar.py            # full benchmark (~5-8 min on 2 cores), writes benchmarks/lidar.md
     python benchmarks/bench_lidar.py --quick    # smoke version (fewer runs), prints only
 
 See benchmarks/README.md for what is measured and how.
@@ -132,14 +132,14 @@ def _vmhwm_kib():
     return -1
 
 
-def child_memory(runs, chunk):
-    """Runs in a fresh process: the whole experiment through the public API."""
+def child_memory(runs, chunk, labels=None):
+    """Runs in a fresh process: the experiment (or its filters ``labels``) through the public API."""
     t0 = time.perf_counter()
     import jax
 
     import tracklab  # noqa: F401
 
-    exp = _load()
+    exp = _load(labels)
     jax.block_until_ready(jax.numpy.zeros(1))  # backend initialised
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     import_s = time.perf_counter() - t0
@@ -166,9 +166,11 @@ def child_memory(runs, chunk):
     }))
 
 
-def bench_memory(runs, chunk):
+def bench_memory(runs, chunk, labels=None):
     t0 = time.perf_counter()
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child-memory", str(runs), str(chunk)]
+    if labels:
+        cmd += ["--labels", ",".join(labels)]
     p = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
     total = time.perf_counter() - t0
     if p.returncode != 0:
@@ -176,6 +178,69 @@ def bench_memory(runs, chunk):
     out = json.loads(p.stdout.strip().splitlines()[-1])
     out["process_s"] = total
     return out
+
+
+# ----------------------------------------------------------------------------- 10^6 runs, first result
+
+MILLION_LABELS = ("CMKF", "EKF")  # the full set of six takes ~1 h for 10^6 runs on 2 cores
+
+
+def million(out=None):
+    """10^6 runs x 200 steps in chunks of 10 000, peak RSS of a fresh process (bound: 2 GiB)."""
+    load = " ".join(f"{x:.2f}" for x in os.getloadavg())
+    m = bench_memory(1_000_000, 10_000, MILLION_LABELS)
+    lines = [
+        "## 10^6 runs x 200 steps (`python benchmarks/bench_lidar.py --million`)",
+        "",
+        f"Filters {', '.join(MILLION_LABELS)} of the lidar experiment, chunk 10 000, fresh process, "
+        f"load average at start {load}.",
+        "",
+        "| Runs | Baseline (MiB) | Peak RSS (MiB) | VmHWM (MiB) | Wall (s) | Throughput (runs·steps/s) | Diverged |",
+        "|---:|---:|---:|---:|---:|---:|---|",
+        f"| {m['runs']} | {_mib(m['baseline_kib']):.0f} | {_mib(m['peak_kib']):.0f} | {_mib(m['vmhwm_kib']):.0f} | "
+        f"{m['wall_s']:.0f} | {fmt_rate(m['runs'] * 200 / m['wall_s'])} | {m['diverged']} |",
+        "",
+    ]
+    _emit(lines, out)
+    assert m["peak_kib"] <= 2 * 1024 * 1024, "peak resident memory above 2 GiB"
+
+
+def first_result(out=None):
+    """`tracklab run` wall time, process start to exit: a cold compilation cache, then a warm one."""
+    import shutil
+    import tempfile
+
+    cache = Path(tempfile.mkdtemp(prefix="tracklab-cache-"))
+    res_dir = Path(tempfile.mkdtemp(prefix="tracklab-out-"))
+    cmd = [sys.executable, "-m", "tracklab.cli", "run", str(EXPERIMENT), "--runs", "1000", "--no-figures",
+           "--out", str(res_dir / "r")]
+    rows = []
+    for label in ("cold cache", "warm cache", "warm cache"):
+        env = dict(os.environ, TRACKLAB_CACHE_DIR=str(cache))
+        load = os.getloadavg()[0]
+        t0 = time.perf_counter()
+        subprocess.run(cmd, env=env, check=True, capture_output=True, cwd=ROOT)
+        rows.append((label, time.perf_counter() - t0, load))
+        shutil.rmtree(res_dir / "r", ignore_errors=True)
+    shutil.rmtree(cache, ignore_errors=True)
+    lines = [
+        "## First result (`python benchmarks/bench_lidar.py --first-result`)",
+        "",
+        "`tracklab run experiments/lidar_crossing.toml --runs 1000 --no-figures`, all six filters: wall time "
+        "from process start to exit (import, tracing, compilation or cache load, the run, the results folder).",
+        "",
+        "| Compilation cache | Wall (s) | Load average (1 min) |",
+        "|---|---:|---:|",
+    ] + [f"| {lab} | {w:.1f} | {ld:.2f} |" for lab, w, ld in rows] + [""]
+    _emit(lines, out)
+
+
+def _emit(lines, out):
+    md = "\n".join(lines)
+    print(md)
+    if out is not None:
+        with open(out, "a") as f:
+            f.write(md + "\n")
 
 
 # ----------------------------------------------------------------------------- report
@@ -284,15 +349,26 @@ def render(info, cmd, cfg, single, alls, sim, sweep, mems, total_s, load_end):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="smoke version: fewer runs, does not write results.md")
-    ap.add_argument("--out", type=Path, default=None, help="Markdown output (default benchmarks/results.md; none with --quick)")
+    ap.add_argument("--quick", action="store_true", help="smoke version: fewer runs, does not write lidar.md")
+    ap.add_argument("--out", type=Path, default=None, help="Markdown output (default benchmarks/lidar.md; none with --quick)")
     ap.add_argument("--repeat", type=int, default=None,
                     help="timed passes per throughput measurement, fastest kept (default 2; 1 with --quick)")
+    ap.add_argument("--million", action="store_true",
+                    help="only the memory bound: 10^6 runs x 200 steps of the CMKF and the EKF in a fresh process")
+    ap.add_argument("--first-result", action="store_true",
+                    help="only the wall time of `tracklab run` (import included), cold and with a warm compilation cache")
     ap.add_argument("--child-memory", nargs=2, type=int, metavar=("RUNS", "CHUNK"), help=argparse.SUPPRESS)
+    ap.add_argument("--labels", default=None, help=argparse.SUPPRESS)
     a = ap.parse_args()
 
     if a.child_memory:
-        child_memory(*a.child_memory)
+        child_memory(*a.child_memory, labels=a.labels.split(",") if a.labels else None)
+        return
+    if a.million:
+        million(a.out)
+        return
+    if a.first_result:
+        first_result(a.out)
         return
 
     t_all = time.perf_counter()
@@ -345,7 +421,7 @@ def main():
     md = render(info, cmd, cfg, single, alls, sim, sweep, mems, time.perf_counter() - t_all, load_end)
     print()
     print(md)
-    out = a.out if a.out is not None else (None if a.quick else ROOT / "benchmarks" / "results.md")
+    out = a.out if a.out is not None else (None if a.quick else ROOT / "benchmarks" / "lidar.md")
     if out is not None:
         out.write_text(md)
         print(f"written {out}")

@@ -15,17 +15,16 @@ from tracklab.models import ca, cv
 from tracklab.sensors import Sensor
 
 def _distinct_experiments():
-    """Every bundled experiment except: the tuning studies (the scenarios of lidar_crossing,
-    laser_ir_alpha_beta and error_space_overflight); the servo files (tests/test_servo.py); the
-    real-flight error-space runs after the first (they differ only in the truth file); and the
-    nine-filter real-flight comparisons, whose filter kinds are each checked in float32 on the same
-    measurements above and whose spherical sensor and trajectories are checked in lidar_real_flight."""
+    """Every bundled experiment the Monte-Carlo engine runs: all but the files with a [servo] table
+    (tests/test_servo.py) or an [airborne] table (tests/test_airborne*.py), which have their own
+    float32 tests. Files that differ from one already here only in the recorded flight and the noise
+    levels (the same trajectory scenario, sensor kinds and filters) are left out: they exercise nothing new."""
     import tomllib
 
     seen, out = set(), []
     for p in sorted(Path(__file__).resolve().parents[1].joinpath("experiments").glob("*.toml")):
         raw = tomllib.loads(p.read_text())
-        if p.stem.startswith(("tuning_", "real_flights_")) or "servo" in raw:
+        if "servo" in raw or "airborne" in raw:
             continue
         sensors = raw["sensor"] if isinstance(raw["sensor"], list) else [raw["sensor"]]
         signature = (raw["scenario"]["kind"], tuple(s["kind"] for s in sensors),

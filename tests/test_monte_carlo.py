@@ -147,18 +147,19 @@ print(json.dumps({"devices": jax.device_count(),
 
 
 def test_statistics_do_not_depend_on_device_count(tmp_path):
-    """Runs sharded over 4 (forced host) devices give the single-device statistics."""
-    devices = 4
+    """Runs sharded over 2 and 4 (forced host) devices give the single-device statistics."""
     path = write(tmp_path, POLAR)
     script = tmp_path / "dev.py"
     script.write_text(DEVICE_SCRIPT)
-    env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}")
-    out = subprocess.run([sys.executable, str(script), str(path), "100"], env=env, capture_output=True, text=True, check=True)
-    doc = json.loads(out.stdout.strip().splitlines()[-1])
-    assert doc["devices"] == devices
     ref = _flat(load_experiment(path).monte_carlo(chunk=301))
-    for k, v in doc["sums"].items():
-        np.testing.assert_allclose(np.asarray(v, float), ref[k], rtol=1e-12, atol=1e-9, err_msg=k)
+    for devices in (2, 4):
+        env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}")
+        out = subprocess.run([sys.executable, str(script), str(path), "100"], env=env, capture_output=True, text=True,
+                             check=True)
+        doc = json.loads(out.stdout.strip().splitlines()[-1])
+        assert doc["devices"] == devices
+        for k, v in doc["sums"].items():
+            np.testing.assert_allclose(np.asarray(v, float), ref[k], rtol=1e-12, atol=1e-9, err_msg=f"{devices}: {k}")
 
 
 def test_diverging_runs_are_counted_and_excluded():

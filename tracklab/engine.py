@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 import jax
+import jax.extend
 import jax.numpy as jnp
 import numpy as np
 
@@ -88,47 +89,76 @@ def _run_keys(key, idx):
     return split[:, 0], split[:, 1], split[:, 2]
 
 
-def _filter_chunk(spec: FilterSpec, params, truth, z, prior_cv, P0_cv, live, dt, sparse=True, windows=None):
+def _filter_chunk(spec: FilterSpec, params, truth, z, prior_cv, P0_cv, live, dt, pattern=None, detect_all=True,
+                  windows=None):
     """Run one filter over a chunk; reduce to per-step sums over healthy runs.
 
-    ``sparse``: some steps have no report from any sensor, so coasting there pays.
-    ``windows``: name -> (T,) bool mask of steps, for the per-run maxima of the
-    one-step prediction error.
+    ``pattern`` (T, M) bool: which measurement components the sensors report at
+    each step (before missed detections); None: every component at every step.
+    ``detect_all``: no sensor misses a report, so which components are present is
+    the same in every run. ``windows``: name -> (T,) bool mask of steps, for the
+    per-run maxima of the one-step prediction error.
+
+    When some of the filter's state depends on neither a run's prior mean nor its
+    measurements (a linear KF's covariance and gain, the α-β filters' covariance,
+    with the same report pattern in every run), the filter runs as ``vmap`` over
+    runs of a ``lax.scan`` over steps: ``vmap`` batches only what depends on a
+    run's own data, so that state is computed once per step for the whole chunk,
+    not once per run. Otherwise it runs as a scan over steps of a vmap over runs.
     """
     flt = spec.filter
-    if spec.view is not None:
+    T = z.shape[1]
+    M = z.shape[2]
+    if pattern is None:
+        pattern = np.ones((T, M), bool)
+    pattern = np.asarray(pattern, bool)
+    if spec.view is not None:  # the view's report pattern: NaN where the sensors have nothing
+        with jax.ensure_compile_time_eval():
+            template = jnp.where(jnp.asarray(pattern), jnp.ones((), z.dtype), jnp.nan)
+            pattern = np.isfinite(np.asarray(spec.view(template)))
         z = jax.vmap(spec.view)(z)
     pv = spec.pv_index
-    B, T = z.shape[0], z.shape[1]
-
-    x0, P0 = spec.model.embed(prior_cv, P0_cv, spec.prior_extra_var)
-    state = jax.vmap(flt.init, in_axes=(None, 0))(params, Prior(x0, jnp.broadcast_to(P0, (B,) + P0.shape)))
-    step = jax.vmap(flt.step, in_axes=(None, 0, 0))
-    coast = None if flt.coast is None or not sparse else jax.vmap(flt.coast, in_axes=(None, 0, 0))
+    present = jnp.asarray(pattern) if detect_all else None
+    reports = pattern.any(axis=-1)  # steps where some component may be there
+    coast = flt.coast if (flt.coast is not None and not reports.all()) else None
     t = dt * jnp.arange(1, T + 1, dtype=z.dtype)
-    ones = jnp.ones((B,), bool)
+    P0_cv = jnp.asarray(P0_cv, z.dtype)
 
-    def body(state, inp):
-        z_k, truth_k, t_k = inp
-        meas = Meas(z_k, jnp.full((B,), t_k), ones)
+    def init(prior_r):
+        x0, P0 = spec.model.embed(prior_r, P0_cv, spec.prior_extra_var)
+        return flt.init(params, Prior(x0, P0))
+
+    def body(state, inp):  # one run, one step: filter, then that run's errors
+        z_k, truth_k, t_k, present_k, reports_k = inp
+        meas = Meas(z_k, t_k, jnp.asarray(True), present_k)
         if coast is None:
-            state, out = step(params, state, meas)
-        else:  # no run has a measurement at this step (a sensor between reports): predict only
-            state, out = jax.lax.cond(jnp.any(jnp.isfinite(z_k)), step, coast, params, state, meas)
-        e = out.x[:, pv] - truth_k  # (B, 2d) CV layout
-        Pe = out.P[:, pv[:, None], pv[None, :]]
-        nees = jax.vmap(mahalanobis2)(Pe, e)  # NaN when P is not positive definite
-        nis, logdet_s = jax.vmap(mahalanobis2_logdet)(out.S, out.nu)
+            state, out = flt.step(params, state, meas)
+        else:  # no sensor reports at this step (between reports): predict only
+            state, out = jax.lax.cond(reports_k, flt.step, coast, params, state, meas)
+        e = out.x[pv] - truth_k  # (2d,) CV layout
+        Pe = out.P[pv[:, None], pv[None, :]]
+        nees = mahalanobis2(Pe, e)  # NaN when P is not positive definite
+        nis, logdet_s = mahalanobis2_logdet(out.S, out.nu)
         nis = jnp.where(out.valid, nis, 0.0)
         logdet_s = jnp.where(out.valid, logdet_s, 0.0)
-        e_pred = out.x_pred[:, pv[0::2]] - truth_k[:, 0::2]  # one-step prediction error of the position
-        bad = ~(jnp.isfinite(nees) & jnp.all(jnp.isfinite(out.x), axis=-1))
+        e_pred = out.x_pred[pv[0::2]] - truth_k[0::2]  # one-step prediction error of the position
+        bad = ~(jnp.isfinite(nees) & jnp.all(jnp.isfinite(out.x)))
         bad = bad | (out.valid & ~jnp.isfinite(nis))
-        return state, (e, nees, nis, out.valid, out.dof, bad, out.x[0, pv], logdet_s, e_pred)
+        return state, (e, nees, nis, out.valid, out.dof, bad, logdet_s, e_pred)
 
-    zs = jnp.swapaxes(z, 0, 1)
-    truths = jnp.swapaxes(truth[:, 1:], 0, 1)
-    _, (e, nees, nis, upd, dof, bad, x_first, logdet_s, e_pred) = jax.lax.scan(body, state, (zs, truths, t))
+    fixed = (t, present, jnp.asarray(reports))  # the same in every run
+    if present is not None and _has_shared_state(init, body, prior_cv[0], z[0, 0], truth[0, 1], fixed):
+        # vmap over runs of a scan over steps: the state the runs share stays unbatched
+        def one_run(prior_r, z_r, truth_r):
+            return jax.lax.scan(body, init(prior_r), (z_r, truth_r) + fixed)[1]
+
+        outs = jax.vmap(one_run, out_axes=1)(prior_cv, z, truth[:, 1:])
+    else:  # a scan over steps of a vmap over runs (time-major: each step's runs side by side)
+        step = jax.vmap(body, in_axes=(0, (0, 0, None, None, None)))
+        xs = (jnp.swapaxes(z, 0, 1), jnp.swapaxes(truth[:, 1:], 0, 1)) + fixed
+        outs = jax.lax.scan(step, jax.vmap(init)(prior_cv), xs)[1]
+    e, nees, nis, upd, dof, bad, logdet_s, e_pred = outs
+    x_first = e[:, 0] + truth[0, 1:]  # the chunk's first run: estimates (T, 2d) in CV layout
 
     diverged = jnp.any(bad, axis=0)  # (B,)
     ok = live & ~diverged
@@ -165,6 +195,59 @@ def _filter_chunk(spec: FilterSpec, params, truth, z, prior_cv, P0_cv, live, dt,
     }
 
 
+def simulate_runs(scenario, sensor, L0, key, idx):
+    """Runs ``idx`` as the engine simulates them: (truth (B, T+1, 2d), z (B, T, M), prior (B, 2d)).
+
+    Run i's truth, measurements and prior mean come from ``fold_in(key, i)``;
+    ``L0`` is the Cholesky factor of the prior covariance (CV layout).
+    """
+    d = scenario.dim
+    k_truth, k_meas, k_prior = _run_keys(key, idx)
+    truth = jax.vmap(scenario.simulate)(k_truth)  # (B, T+1, 2d)
+    z = jax.vmap(sensor.measure)(k_meas, truth[:, 1:, 0::2])  # (B, T, M)
+    w = jax.vmap(lambda k: jax.random.normal(k, (2 * d,), truth.dtype))(k_prior)
+    return truth, z, truth[:, 0] + w @ L0.T
+
+
+def _tainted(fn, args, flags):
+    """Which outputs of ``fn(*args)`` depend on the inputs flagged in ``flags`` (one per leaf).
+
+    A conservative reading of the jaxpr: an equation with any dependent input makes
+    all its outputs dependent (nested jaxprs included).
+    """
+    args = jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a)), args)
+    closed = jax.make_jaxpr(fn)(*args)
+    jaxpr = closed.jaxpr
+    dep = {v for v, f in zip(jaxpr.invars, flags) if f}
+    for eqn in jaxpr.eqns:
+        if any(not isinstance(v, jax.extend.core.Literal) and v in dep for v in eqn.invars):
+            dep.update(eqn.outvars)
+    return [not isinstance(v, jax.extend.core.Literal) and v in dep for v in jaxpr.outvars]
+
+
+def _has_shared_state(init, body, prior, z_k, truth_k, fixed):
+    """Whether some of a filter's state depends neither on a run's prior mean nor on its
+    measurements (a linear KF's covariance when the report pattern is the same in every run)."""
+    fixed_k = jax.tree_util.tree_map(lambda a: a[0], fixed)
+    n_fixed = len(jax.tree_util.tree_leaves(fixed_k))
+    state_flags = _tainted(init, (prior,), [True] * len(jax.tree_util.tree_leaves(prior)))
+    state = jax.eval_shape(init, prior)
+    n_state = len(state_flags)
+
+    def step(state, z_k, truth_k, fixed_k):
+        return body(state, (z_k, truth_k) + tuple(fixed_k))[0]
+
+    for _ in range(n_state + 1):  # to the fixed point: a dependent leaf stays dependent
+        flags = state_flags + [True] * (len(jax.tree_util.tree_leaves(z_k)) + len(jax.tree_util.tree_leaves(truth_k)))
+        flags += [False] * n_fixed
+        new = _tainted(step, (state, z_k, truth_k, fixed_k), flags)
+        new = [a or b for a, b in zip(new, state_flags)]
+        if new == state_flags:
+            break
+        state_flags = new
+    return not all(state_flags)
+
+
 def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, windows=None):
     """The jitted per-chunk computation: (params_list, key, idx, live) -> sums.
 
@@ -176,16 +259,14 @@ def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, wind
     L0 = jnp.linalg.cholesky(P0_cv)
     if not isinstance(sensor, SensorSuite):
         sensor = SensorSuite((sensor,))
-    sparse = not np.all(np.any([s.report_mask(scenario.steps) for s in sensor.sensors], axis=0))
+    pattern = np.concatenate([np.repeat(s.report_mask(scenario.steps)[:, None], s.m, axis=1) for s in sensor.sensors],
+                             axis=1)  # (steps, M): which components each sensor reports at each step
+    detect_all = all(s.p_detect >= 1.0 for s in sensor.sensors)
     with_bound = scenario.linear_gaussian() is not None  # no PCRLB, no information to gather
 
     def chunk(params_list, key, idx, live):
-        k_truth, k_meas, k_prior = _run_keys(key, idx)
-        truth = jax.vmap(scenario.simulate)(k_truth)  # (B, T+1, 2d)
+        truth, z, prior = simulate_runs(scenario, sensor, L0, key, idx)
         pos = truth[:, 1:, 0::2]
-        z = jax.vmap(sensor.measure)(k_meas, pos)  # (B, T, M)
-        w = jax.vmap(lambda k: jax.random.normal(k, (2 * d,), truth.dtype))(k_prior)
-        prior = truth[:, 0] + w @ L0.T
         if with_bound:  # expected measurement information at the true positions, for the PCRLB
             info = jnp.sum(jnp.where(live[:, None, None, None], jax.vmap(sensor.information)(pos), 0.0), axis=0)
         else:
@@ -195,7 +276,8 @@ def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, wind
             "_example": {"truth": truth[0], "z": z[0]},
         }
         for spec, params in zip(specs, params_list):
-            out[spec.label] = _filter_chunk(spec, params, truth, z, prior, P0_cv, live, dt, sparse, windows)
+            out[spec.label] = _filter_chunk(spec, params, truth, z, prior, P0_cv, live, dt, pattern, detect_all,
+                                            windows)
         return out
 
     return jax.jit(chunk)

@@ -10,16 +10,45 @@ elementwise operation on run-length vectors.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
+import numpy as np
+
+
+def _concrete(A):
+    """A's values when they are known at trace time (a NumPy array or a constant), else None."""
+    if isinstance(A, np.ndarray):
+        return A
+    if isinstance(A, jax.Array) and not isinstance(A, jax.core.Tracer):
+        return np.asarray(A)
+    return None
 
 
 def mm(A, B):
-    """Matrix product of small matrices as a broadcast multiply and a sum."""
-    if A.ndim == 1:
-        return jnp.sum(A[:, None] * B, axis=0)
-    if B.ndim == 1:
-        return jnp.sum(A * B[None, :], axis=1)
-    return jnp.sum(A[:, :, None] * B[None, :, :], axis=1)
+    """Matrix product of small matrices: a sum of outer products, one per inner index.
+
+    Each term is an elementwise multiply of a column of A and a row of B, so under
+    ``vmap`` there is no reduction at all (XLA on CPU runs the reductions of a
+    broadcast-and-sum product slowly). Terms whose column of A or row of B is known to
+    be zero at trace time (the structural zeros of F, H, G) are skipped.
+    """
+    vec_a, vec_b = A.ndim == 1, B.ndim == 1
+    A2 = A[None, :] if vec_a else A
+    B2 = B[:, None] if vec_b else B
+    ca, cb = _concrete(A2), _concrete(B2)
+    acc = None
+    for k in range(A2.shape[1]):
+        if (ca is not None and not ca[:, k].any()) or (cb is not None and not cb[k, :].any()):
+            continue
+        t = A2[:, k, None] * B2[None, k, :]
+        acc = t if acc is None else acc + t
+    if acc is None:
+        acc = jnp.zeros((A2.shape[0], B2.shape[1]), jnp.result_type(A, B))
+    if vec_a:
+        return acc[0]
+    if vec_b:
+        return acc[:, 0]
+    return acc
 
 
 def cholesky(A):

@@ -29,11 +29,20 @@ class Prior(NamedTuple):
 
 
 class Meas(NamedTuple):
-    """One measurement: value, time and validity (False = missed detection)."""
+    """One measurement: value, time and validity (False = missed detection).
+
+    ``present`` (optional, one flag per component) says which components are
+    there when that is known without looking at ``z``: the engine passes the
+    sensors' report pattern when every sensor detects with probability one, so
+    under ``vmap`` it is shared by all runs, and so is everything a filter computes
+    from it alone (a linear KF's covariance and gain: once per step, not once per run).
+    By default the components that are present are the finite ones.
+    """
 
     z: jax.Array
     t: jax.Array
     valid: jax.Array
+    present: jax.Array | None = None
 
 
 class Out(NamedTuple):
@@ -125,5 +134,5 @@ def select(valid, a, b):
 
 def masked_meas(meas: Meas):
     """Measurement with NaNs replaced by zeros, and which components are present."""
-    present = meas.valid & jnp.isfinite(meas.z)
+    present = meas.valid & (jnp.isfinite(meas.z) if meas.present is None else meas.present)
     return jnp.where(present, meas.z, 0.0), present
