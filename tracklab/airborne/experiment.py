@@ -114,7 +114,7 @@ class AirborneExperiment:
     precision: str = "float64"
     also_runs: tuple = ()
     studies: list = field(default_factory=list)
-    chunk: int = 250
+    chunk: int = 100
 
     @property
     def period(self) -> float:
@@ -350,6 +350,8 @@ def write_airborne_results(doc, folder: Path, figures=True):
             ax.set_yscale("log")
             ax.grid(True, which="both", alpha=0.3)
         top = axes[0, 0].secondary_xaxis("top", functions=(lambda x: np.interp(x, t, rng), lambda r: np.interp(r, rng[::-1], t[::-1])))
+        ticks = [r for r in (20, 15, 10, 7, 5, 4, 3, 2) if rng.min() <= r <= rng.max()]
+        top.set_xticks(ticks)
         top.set_xlabel("nominal range (km)")
         axes[-1, 0].set_xlabel("time (s)")
         axes[0, 0].legend(fontsize=7)
