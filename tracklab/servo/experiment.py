@@ -154,8 +154,13 @@ class ServoExperiment:
     def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None):
         from tracklab.report import atomic_folder, results_folder
 
+        import jax
+
         out = results_folder(self, out)
-        doc = self.simulate(runs or self.runs, self.seed if seed is None else seed, progress)
+        precision = precision or self.precision
+        with jax.enable_x64(precision == "float64"):  # single precision: traced and run in float32
+            doc = self.simulate(runs or self.runs, self.seed if seed is None else seed, progress)
+        doc["precision"] = precision
         with atomic_folder(out) as tmp:
             write_servo_results(doc, tmp, figures)
         return doc
@@ -334,6 +339,7 @@ def load_servo_experiment(f: Path, raw: dict, section) -> ServoExperiment:
         if sec not in raw:
             raise ConfigError(f, f"[{sec}]", None, "section is required in a servo experiment")
     name, runs, seed, ex = experiment_header(f, raw, section)
+    precision = ex.string("precision", "float64", choices=("float64", "float32"))
     ex.check_unknown()
     sv = section(f, "servo", raw["servo"])
     frames = sv.integer("frames", 3000, lo=10, hi=10_000_000)
@@ -398,4 +404,4 @@ def load_servo_experiment(f: Path, raw: dict, section) -> ServoExperiment:
         cs.check_unknown()
         cases.append(Case(label, mode, est))
     return ServoExperiment(f, name, runs, seed, frames, frame_dt, frame_ticks, delay, noise, settle, accel_ff, target,
-                           estimators, cases, raw)
+                           estimators, cases, raw, precision=precision)

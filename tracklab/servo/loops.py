@@ -111,7 +111,7 @@ def _tick(blocks, x, w_ff, *, e_pos=None, reference=None):
     return (vel.advance(xv, v), pc.advance(xpc, e_pos)), (theta, w)
 
 
-def _zeros(blocks, dtype=jnp.float64):
+def _zeros(blocks, dtype=None):
     vel, pc, _ = blocks
     return (jnp.zeros((vel.order,), dtype), jnp.zeros((pc.order,), dtype))
 
