@@ -263,7 +263,7 @@ def test_airborne_experiment_writes_results_and_float32_agrees(tmp_path):
     for label in ("joint", "classical"):
         a, b = doc["filters"][label]["summary"], doc32["filters"][label]["summary"]
         for key in ("pointing[steady]", "los_rate[steady]", "range[steady]", "range_rate[steady]"):
-            assert b[key] == pytest.approx(a[key], rel=0.05), (label, key)
+            assert b[key] == pytest.approx(a[key], rel=0.01), (label, key)  # the same draws: arithmetic only
 
 
 def test_moose_that_cannot_switch_is_the_joint_ekf():
@@ -293,3 +293,16 @@ def test_moose_that_cannot_switch_is_the_joint_ekf():
     (xe, Pe), (xm, Pm) = jax.jit(lambda: (run(cd_ekf(tm), base), run(moose(tm), mparams)))()
     np.testing.assert_allclose(np.asarray(xm), np.asarray(xe), rtol=1e-10, atol=1e-13)
     np.testing.assert_allclose(np.asarray(Pm), np.asarray(Pe), rtol=1e-10, atol=1e-16)
+
+
+def test_airborne_statistics_do_not_depend_on_the_chunk_size(tmp_path):
+    """Run i's key is the same whatever the chunking; padded runs are masked out."""
+    path = tmp_path / "classical.toml"
+    path.write_text(EXPERIMENT.split("[[tracker]]")[0] + '[[tracker]]\nlabel = "classical"\nkind = "classical"\n')
+    exp = load_experiment(path)
+    exp.chunk = 12
+    whole, _, _ = exp.monte_carlo()
+    exp.chunk = 5  # 3 chunks, the last one padded with 3 masked runs
+    chunked, _, _ = exp.monte_carlo()
+    for key, v in whole["classical"].items():
+        np.testing.assert_allclose(chunked["classical"][key], v, rtol=1e-12, atol=1e-12, err_msg=key)

@@ -4,7 +4,6 @@ import subprocess
 import sys
 import textwrap
 import tomllib
-from pathlib import Path
 
 import jax
 import jax.flatten_util

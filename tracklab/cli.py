@@ -55,6 +55,7 @@ def cmd_run(args) -> int:
 
 
 def cmd_list(args) -> int:
+    from tracklab.airborne.experiment import TRACKERS
     from tracklab.filters import FILTER_KINDS
     from tracklab.scenarios import SCENARIO_KINDS
     from tracklab.sensors import SENSOR_KINDS
@@ -75,6 +76,10 @@ def cmd_list(args) -> int:
     print("scenarios:")
     for k, desc in SCENARIO_KINDS.items():
         print(f"  {k:<16} {desc}")
+    print("airborne-radar trackers ([[tracker]] of an [airborne] file, paper 001):")
+    for k, desc in TRACKERS.items():
+        print(f"  {k:<16} {desc}")
+    print("servo modes ([[case]] of a [servo] file, paper 003): double_loop, velocity_lag, on_axis")
     return 0
 
 
@@ -134,7 +139,7 @@ def cmd_sweep(args) -> int:
     doc = sweep(exp, axes, runs=args.runs, progress=progress)
     n = int(np.prod([len(a.values) for a in axes]))
     print(f"# {exp.name}: {n} grid points x {doc['runs']} runs, {doc['wall_s']:.1f} s")
-    rows = write_sweep(exp, doc, out, figures=not args.no_figures)
+    write_sweep(exp, doc, out, figures=not args.no_figures)
     print((out / "table.md").read_text(), end="")
     print(f"sweep written to {out}/")
     return 0

@@ -208,23 +208,40 @@ def atomic_folder(out: Path):
         raise
 
 
+def write_json(path: Path, doc):
+    """Compact JSON, NaN and infinities as null, floats to 10 significant digits."""
+    path.write_text(json.dumps(_jsonable(doc), separators=(",", ":"), allow_nan=False) + "\n")
+
+
+def write_tables(folder: Path, doc, table_md=None):
+    """stats.json, table.md (``table_md``, default the one-row-per-filter table) and table.csv."""
+    write_json(folder / "stats.json", doc)
+    (folder / "table.md").write_text(markdown_table(doc) if table_md is None else table_md)
+    (folder / "table.csv").write_text(csv_table(doc))
+
+
+def pyplot():
+    """matplotlib.pyplot on the file-only Agg backend."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
 def write_results(exp, res, out=None, figures=True):
     """Write DIR (default results/<name>/) atomically; return the stats document."""
     doc = stats_document(exp, res)
     with atomic_folder(results_folder(exp, out)) as tmp:
-        (tmp / "stats.json").write_text(json.dumps(_jsonable(doc), separators=(",", ":"), allow_nan=False) + "\n")
-        (tmp / "table.md").write_text(markdown_table(doc))
-        (tmp / "table.csv").write_text(csv_table(doc))
+        write_tables(tmp, doc)
         if figures:
             plot_figures(doc, tmp)
     return doc
 
 
 def plot_figures(doc, folder: Path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     dt, stride = doc["dt"], doc.get("series_stride", 1)
     t = dt * np.arange(stride, doc["steps"] + 1, stride)

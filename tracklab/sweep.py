@@ -16,7 +16,6 @@ from __future__ import annotations
 import csv
 import io
 import itertools
-import json
 import re
 import time
 from dataclasses import dataclass
@@ -28,7 +27,7 @@ import numpy as np
 
 from tracklab.engine import MonteCarloResult, Sums, make_chunk_fn, pcrlb
 from tracklab.metrics import statistics
-from tracklab.report import _jsonable, atomic_folder
+from tracklab.report import atomic_folder, write_json
 
 GRID_RE = re.compile(r"^([a-z_]+)=([^:]+):([^:]+):(\d+)$")
 SCALABLE = ("q", "r", "lam", "alpha", "beta", "gamma", "rho", "b", "q_e", "r_e", "r_guide")
@@ -149,17 +148,16 @@ def _write_sweep(exp, doc, tmp, figures):
                    for p in doc["points"]],
         "experiment": exp.raw,
     }
-    (tmp / "sweep.json").write_text(json.dumps(_jsonable(summary_only), separators=(",", ":"), allow_nan=False) + "\n")
+    write_json(tmp / "sweep.json", summary_only)
     if figures and len(names) <= 2:
         _plot(doc, names, labels, tmp)
     return rows
 
 
 def _plot(doc, names, labels, folder):
-    import matplotlib
+    from tracklab.report import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     axes_vals = [np.asarray(doc["axes"][n]) for n in names]
     unit = doc.get("units", ("m",))[0]

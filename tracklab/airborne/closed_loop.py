@@ -17,7 +17,9 @@ the antenna by a fixed angle about its d axis at one instant (a large error
 the trackers must recover from).
 
 ``engage`` is one run (pure, ``vmap`` over keys); ``sums`` reduces a batch of
-runs to per-period sums for streaming statistics.
+runs to per-period sums for streaming statistics. Every random draw is made in
+single precision and then cast, so a float32 run sees the very same target
+paths and noise as a float64 one.
 """
 
 from __future__ import annotations
@@ -73,14 +75,15 @@ def engage(eng: Engagement, tracker: Tracker, params, cfg: LoopConfig, sd0, key)
     lo = -jnp.asarray([beam, beam, gate_r, gate_v], dtype)
     sd0 = jnp.asarray(sd0, dtype)
 
+    normal = lambda k, shape: jax.random.normal(k, shape, jnp.float32).astype(dtype)
     k0, k1, k2, key = jax.random.split(key, 4)
-    a0 = jax.random.normal(k0, (3,), dtype) * (eng.singer_sigma if cfg.singer else 0.0)
+    a0 = normal(k0, (3,)) * (eng.singer_sigma if cfg.singer else 0.0)
     s = jnp.zeros((3, 3), dtype).at[:, 2].set(a0)
     rel_p, rel_v, a_t, a_m = truth(eng, jnp.zeros((), dtype), s)
-    eps0 = jax.random.normal(k1, (2,), dtype) * sd0[0]
+    eps0 = normal(k1, (2,)) * sd0[0]
     C = rotate(los_frame(rel_p), jnp.stack([jnp.zeros((), dtype), eps0[1], eps0[0]]))
     x_true0, _ = los_state(rel_p, rel_v, a_t, a_m, C)
-    x0 = x_true0 + jax.random.normal(k2, (9,), dtype) * sd0
+    x0 = x_true0 + normal(k2, (9,)) * sd0
     x0 = x0.at[jnp.array([0, 3])].set(0.0).at[jnp.array([2, 5, 8])].set(0.0)  # ε̂ = 0: the antenna points at the designation
     P0 = jnp.diag(sd0**2)
     ts = tracker.start(params, x0, P0)
@@ -102,7 +105,7 @@ def engage(eng: Engagement, tracker: Tracker, params, cfg: LoopConfig, sd0, key)
         return (ts, C, w_next, s, lost), x
 
     def one_period(carry, p):
-        noise = jax.random.normal(jax.random.fold_in(key, p), (n, 13), dtype)
+        noise = normal(jax.random.fold_in(key, p), (n, 13))
         ticks = jnp.arange(n)
         carry, xs = jax.lax.scan(one_tick, carry, (ticks, p * n + ticks + 1, noise))
         ts, C, w, s, lost = carry

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 from jax.scipy.linalg import expm
 
 from tracklab.airborne.boresight import EPS, OMEGA, antenna_motion
-from tracklab.airborne.cd_ekf import CDParams, command
+from tracklab.airborne.cd_ekf import command
 from tracklab.airborne.tracker import Timing, Tracker
 from tracklab.filters.core import kalman_update, symmetrise
 

@@ -64,7 +64,6 @@ and noise), so differences between trackers are paired.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass, field, fields
@@ -74,7 +73,13 @@ import numpy as np
 
 from tracklab.errors import ConfigError
 
-TRACKER_KINDS = ("cd_ekf", "decoupled", "classical", "moose")
+TRACKERS = {
+    "cd_ekf": "joint continuous-discrete EKF on the 9-state boresight model, antenna command eq. 1",
+    "decoupled": "Pearson/Shibata: e, d and range channels filtered separately (range_velocity coupled | separate)",
+    "classical": "eq. 17 angle loop, alpha-beta-gamma range loop, alpha-beta velocity loop",
+    "moose": "joint EKF with Markov-switching mean accelerations (Moose-type adaptive filter)",
+}
+TRACKER_KINDS = tuple(TRACKERS)
 MRAD = 1e-3
 
 
@@ -186,7 +191,8 @@ class AirborneExperiment:
         n_chunks = -(-runs // chunk)
         with jax.enable_x64(precision == "float64"):
             dtype = jnp.result_type(float)
-            keys = jax.random.split(jax.random.key(seed), n_chunks * chunk)
+            keys = jax.random.split(jax.random.key(seed), runs)  # run i's key whatever the chunk size
+            keys = jnp.concatenate([keys, jnp.repeat(keys[-1:], n_chunks * chunk - runs, axis=0)])  # padding, masked
             live_all = np.arange(n_chunks * chunk) < runs
             for ti, tc in enumerate(self.trackers):
                 tracker, params = self.build(tc)
@@ -321,17 +327,12 @@ def airborne_tables(doc) -> str:
 
 
 def write_airborne_results(doc, folder: Path, figures=True):
-    from tracklab.report import _jsonable, csv_table
+    from tracklab.report import pyplot, write_tables
 
-    (folder / "stats.json").write_text(json.dumps(_jsonable(doc), separators=(",", ":"), allow_nan=False) + "\n")
-    (folder / "table.md").write_text(airborne_tables(doc))
-    (folder / "table.csv").write_text(csv_table(doc))
+    write_tables(folder, doc, airborne_tables(doc))
     if not figures:
         return
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     t, rng = np.asarray(doc["t"]), np.asarray(doc["nominal_range"]) / 1e3
     panels = [

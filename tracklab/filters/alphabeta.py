@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab.filters.core import Filter, Gaussian, Out, masked_meas, select, symmetrise
+from tracklab.filters.core import Filter, Out, masked_meas, select, symmetrise
 from tracklab.linalg import mm
 from tracklab.sensors import CONVERSIONS
 

@@ -42,7 +42,6 @@ run, averaged over runs) and the estimator's largest rate error (°/s).
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass, field
@@ -286,17 +285,12 @@ def cone_target(half_angle, axis_elevation, period):
 
 
 def write_servo_results(doc, folder: Path, figures=True):
-    from tracklab.report import _jsonable, csv_table, markdown_table
+    from tracklab.report import pyplot, write_tables
 
-    (folder / "stats.json").write_text(json.dumps(_jsonable(doc), separators=(",", ":"), allow_nan=False) + "\n")
-    (folder / "table.md").write_text(markdown_table(doc))
-    (folder / "table.csv").write_text(csv_table(doc))
+    write_tables(folder, doc)
     if not figures:
         return
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     ex = doc["example_run"]
     t = np.asarray(ex["t"])

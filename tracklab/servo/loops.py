@@ -37,7 +37,7 @@ discretisation against the continuous transfer functions.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable
 
 import jax
