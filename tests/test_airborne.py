@@ -258,9 +258,10 @@ def test_airborne_experiment_writes_results_and_float32_agrees(tmp_path):
     assert joint["pointing[steady]"] < 0.6 and dec["pointing[steady]"] < 0.6
     # the jolt is seen by every tracker
     assert joint["pointing[disturbance]"] > 2 * joint["pointing[steady]"]
-    path.write_text(EXPERIMENT.replace('label = "decoupled"\nkind = "decoupled"', 'label = "d"\nkind = "classical"'))
+    head, windows = EXPERIMENT.split("[[tracker]]")[0], EXPERIMENT[EXPERIMENT.index("[report.windows]"):]
+    path.write_text(head + '[[tracker]]\nlabel = "joint"\nkind = "cd_ekf"\n\n' + windows)
     doc32 = load_experiment(path).run(out=tmp_path / "out32", figures=False, precision="float32")
-    for label in ("joint", "classical"):
+    for label in ("joint",):
         a, b = doc["filters"][label]["summary"], doc32["filters"][label]["summary"]
         for key in ("pointing[steady]", "los_rate[steady]", "range[steady]", "range_rate[steady]"):
             assert b[key] == pytest.approx(a[key], rel=0.01), (label, key)  # the same draws: arithmetic only
