@@ -2,9 +2,21 @@
 
 Importing tracklab turns on JAX's 64-bit mode: ranges of 10⁴–10⁵ m with
 milliradian angles need float64.
+
+It also runs XLA's Eigen kernels (dense matrix products) single-threaded on the
+CPU, unless XLA_FLAGS already says otherwise: with the multi-threaded Eigen
+pool, long vmapped scans of small matrix products (the airborne trackers)
+intermittently never finish, every thread idle in the pool
+(``--xla_cpu_multi_thread_eigen=false``; it must be set before JAX starts its
+CPU backend, so import tracklab before running any JAX computation).
 """
 
-import jax
+import os
+
+if "xla_cpu_multi_thread_eigen" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_multi_thread_eigen=false").strip()
+
+import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
