@@ -352,16 +352,31 @@ def _is_table_list(v):
     return isinstance(v, list) and bool(v) and all(isinstance(x, dict) for x in v)
 
 
+def check_sections(f, raw, required, allowed, kind=None):
+    """The file's top-level tables: each required one present, none outside ``allowed``.
+
+    ``kind`` ("a servo experiment", …) names the kind of file in the messages.
+    """
+    where = f" in {kind}" if kind else ""
+    for sec in required:
+        if sec not in raw:
+            raise ConfigError(f, f"[{sec}]", None, f"section is required{where}")
+    unknown = sorted(set(raw) - set(allowed))
+    if unknown:
+        raise ConfigError(f, f"[{unknown[0]}]", "...", f"unknown section{where} (allowed: {', '.join(allowed)})")
+
+
 def experiment_header(f, raw, section=None):
-    """[experiment]'s name, runs, seed (and description) -> (name, runs, seed, section) for the rest."""
+    """[experiment]'s name, runs, seed, precision (and description) -> (name, runs, seed, precision, section)."""
     ex = (section or _Section)(f, "experiment", raw["experiment"])
     name = ex.string("name", required=True)
     if not NAME_RE.fullmatch(name):
         raise ConfigError(f, "experiment.name", name, "must be 1-100 characters of letters, digits, '_', '.', '-'")
     runs = ex.integer("runs", required=True, lo=1, hi=MAX_RUNS)
     seed = ex.integer("seed", 0, lo=0, hi=2**32 - 1)
+    precision = ex.string("precision", "float64", choices=("float64", "float32"))
     ex.get("description")
-    return name, runs, seed, ex
+    return name, runs, seed, precision, ex
 
 
 def load_experiment(path) -> Experiment:
@@ -376,14 +391,9 @@ def load_experiment(path) -> Experiment:
         from tracklab.airborne.experiment import load_airborne_experiment
 
         return load_airborne_experiment(path, raw, _Section)
-    for sec in ("experiment", "scenario", "sensor"):
-        if sec not in raw:
-            raise ConfigError(f, f"[{sec}]", None, "section is required")
-    unknown = sorted(set(raw) - {"experiment", "scenario", "sensor", "filter", "prior", "report", "study"})
-    if unknown:
-        raise ConfigError(f, f"[{unknown[0]}]", "...", "unknown section (allowed: experiment, scenario, sensor, filter, prior, report, study)")
-
-    name, runs, seed, ex = experiment_header(f, raw)
+    check_sections(f, raw, ("experiment", "scenario", "sensor"),
+                   ("experiment", "scenario", "sensor", "filter", "prior", "report", "study"))
+    name, runs, seed, precision, ex = experiment_header(f, raw)
     dt = ex.number("dt", required=True, positive=True)
     if not 1e-6 <= dt <= 1e6:
         raise ConfigError(f, "experiment.dt", dt, "must be a period in [1e-06, 1e+06] s")
@@ -391,7 +401,6 @@ def load_experiment(path) -> Experiment:
     if runs * steps > MAX_RUN_STEPS:
         raise ConfigError(f, "experiment.runs", runs, f"runs x steps must be <= {MAX_RUN_STEPS:.0e}")
     chunk = ex.integer("chunk", None, lo=1, hi=1_000_000)
-    precision = ex.string("precision", "float64", choices=("float64", "float32"))
     also = ex.get("also_runs", [])  # extra run counts `tracklab reproduce` writes, e.g. a paper's own
     if not isinstance(also, list) or any(isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= MAX_RUNS for v in also):
         raise ConfigError(f, "experiment.also_runs", also, f"must be a list of run counts in [1, {MAX_RUNS}]")

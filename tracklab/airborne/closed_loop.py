@@ -94,7 +94,8 @@ def engage(eng: Engagement, tracker: Tracker, params, cfg: LoopConfig, sd0, key)
         cmd, gates = tracker.tick(params, ts, i)
         w_next, turn = antenna_motion(w, cmd, dt, tm.lag)
         C = rotate(C, jnp.stack([jnp.zeros((), dtype), turn[1], turn[0]]))
-        C = jnp.where(j == cfg.jolt_tick, rotate(C, jnp.asarray([0.0, cfg.jolt, 0.0], dtype)), C)
+        if cfg.jolt_tick >= 0:  # static: runs without a jolt trace no rotation for it
+            C = jnp.where(j == cfg.jolt_tick, rotate(C, jnp.asarray([0.0, cfg.jolt, 0.0], dtype)), C)
         s = s @ phi.T + xi[:9].reshape(3, 3) @ L.T
         rel_p, rel_v, a_t, a_m = truth(eng, j * dt, s)
         x, _ = los_state(rel_p, rel_v, a_t, a_m, C)

@@ -74,13 +74,6 @@ class Engagement:
         return (jnp.stack([x, y, z], -1), jnp.stack([V * c, V * s, zero], -1),
                 jnp.stack([-a * s, a * c, zero], -1))
 
-    def closing_time(self, to_range, horizon=600.0):
-        """First time the nominal range falls to ``to_range`` (NaN if it never does within ``horizon``)."""
-        t = np.arange(0.0, horizon, 0.01)
-        r = np.linalg.norm(np.asarray(self.target(t)[0] - self.own(t)[0]), axis=-1)
-        below = np.nonzero(r <= to_range)[0]
-        return float(t[below[0]]) if below.size else float("nan")
-
 
 def singer_block(T, tau, sigma):
     """Exact discretisation (Φ, Q) of one Singer axis [p, v, a] over T, by Van Loan's method.

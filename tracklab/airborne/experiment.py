@@ -260,8 +260,7 @@ class AirborneExperiment:
                     summary[f"{key}[{name}]"] = float(np.sqrt(np.mean(series[key][m] ** 2)))
                 nees = series["nees"][m]
                 summary[f"nees[{name}]"] = float(np.mean(nees)) if np.all(np.isfinite(nees)) else None
-            all_steps = np.ones_like(t, bool)
-            summary["rmse_pos"] = float(np.sqrt(np.mean(series["pointing"][all_steps] ** 2)))
+            summary["rmse_pos"] = float(np.sqrt(np.mean(series["pointing"] ** 2)))
             summary["rmse_vel"] = float(np.sqrt(np.mean(series["los_rate"] ** 2)))
             if np.all(np.isfinite(series["nees"])):
                 lo, hi = average_chi2_interval(9, float(np.min(s["n_nees"])))
@@ -391,17 +390,11 @@ def _read_windows(f, raw_report, duration, disturbance):
 def load_airborne_experiment(f: Path, raw: dict, section) -> AirborneExperiment:
     """Validate an airborne experiment file (``section``: config's typed table reader)."""
     from tracklab.airborne.engagement import Engagement
-    from tracklab.config import experiment_header
+    from tracklab.config import check_sections, experiment_header
 
-    allowed = {"experiment", "airborne", "engagement", "noise", "acquisition", "disturbance", "tracker", "report"}
-    unknown = sorted(set(raw) - allowed)
-    if unknown:
-        raise ConfigError(f, f"[{unknown[0]}]", "...", f"unknown section in an airborne experiment (allowed: {', '.join(sorted(allowed))})")
-    for sec in ("experiment", "tracker"):
-        if sec not in raw:
-            raise ConfigError(f, f"[{sec}]", None, "section is required in an airborne experiment")
-    name, runs, seed, ex = experiment_header(f, raw, section)
-    precision = ex.string("precision", "float64", choices=("float64", "float32"))
+    check_sections(f, raw, ("experiment", "tracker"), ("experiment", "airborne", "engagement", "noise", "acquisition",
+                                                      "disturbance", "tracker", "report"), "an airborne experiment")
+    name, runs, seed, precision, ex = experiment_header(f, raw, section)
     ex.check_unknown()
     ab = section(f, "airborne", raw["airborne"])
     duration = ab.number("duration", 39.0, positive=True, hi=3600.0)

@@ -323,17 +323,12 @@ def write_servo_results(doc, folder: Path, figures=True):
 
 def load_servo_experiment(f: Path, raw: dict, section) -> ServoExperiment:
     """Validate a servo experiment file (``section``: config's typed table reader)."""
-    from tracklab.config import experiment_header
+    from tracklab.config import check_sections, experiment_header
     from tracklab.servo.loops import MODES
 
-    unknown = sorted(set(raw) - {"experiment", "servo", "target", "estimator", "case"})
-    if unknown:
-        raise ConfigError(f, f"[{unknown[0]}]", "...", "unknown section in a servo experiment (allowed: experiment, servo, target, estimator, case)")
-    for sec in ("experiment", "target", "case"):
-        if sec not in raw:
-            raise ConfigError(f, f"[{sec}]", None, "section is required in a servo experiment")
-    name, runs, seed, ex = experiment_header(f, raw, section)
-    precision = ex.string("precision", "float64", choices=("float64", "float32"))
+    check_sections(f, raw, ("experiment", "target", "case"), ("experiment", "servo", "target", "estimator", "case"),
+                   "a servo experiment")
+    name, runs, seed, precision, ex = experiment_header(f, raw, section)
     ex.check_unknown()
     sv = section(f, "servo", raw["servo"])
     frames = sv.integer("frames", 3000, lo=10, hi=10_000_000)
