@@ -396,6 +396,21 @@ def bench_memory(case, impl, runs):
 # ----------------------------------------------------------------------------- one case
 
 
+def fastest(label, runs, time_one, log, rate):
+    """``time_one(chunk)`` -> (wall s, compile s or None, payload) for each batch size in CHUNKS up to ``runs``;
+    the fastest as {wall, compile_s, chunk, payload}. ``rate(runs, wall)``: runs·steps per second."""
+    best = None
+    for chunk in CHUNKS:
+        if chunk > runs:
+            continue
+        wall, compile_s, payload = time_one(chunk)
+        note = "" if compile_s is None else f", compile {compile_s:.2f} s"
+        log(f"  {label} chunk {chunk}: {rate(runs, wall) / 1e6:.2f} M runs*steps/s{note}")
+        if best is None or wall < best["wall"]:
+            best = {"wall": wall, "compile_s": compile_s or 0.0, "chunk": chunk, "payload": payload}
+    return best
+
+
 def run_case(case, runs, fp_runs, repeat, log):
     import numpy as np
 
@@ -423,45 +438,29 @@ def run_case(case, runs, fp_runs, repeat, log):
     log(f"{case}: estimates agree on {n_check} runs (NumPy, FilterPy{', dynamax' if dyn else ''} vs tracklab)")
 
     # tracklab, end to end
-    best = None
-    for chunk in CHUNKS:
-        if chunk > runs:
-            continue
+    def e2e(chunk):
         r = tracklab_e2e(exp, runs, chunk, repeat)
-        log(f"  tracklab e2e chunk {chunk}: {rate(runs, r['wall_s']) / 1e6:.2f} M runs*steps/s, compile {r['compile_s']:.2f} s")
-        if best is None or r["wall_s"] < best["wall_s"]:
-            best = r
-    rows["tracklab"] = {"rate": rate(runs, best["wall_s"]), "compile_s": best["compile_s"], "chunk": best["chunk"],
+        return r["wall_s"], r["compile_s"], r
+
+    best = fastest("tracklab e2e", runs, e2e, log, rate)
+    rows["tracklab"] = {"rate": rate(runs, best["wall"]), "compile_s": best["compile_s"], "chunk": best["chunk"],
                         "what": "simulate + filter + statistics"}
 
     if dyn is not None:
-        best_d = None
-        for chunk in CHUNKS:
-            if chunk > runs:
-                continue
-            wall, comp, out = time_jax(dyn, data.prior, data.z, chunk, repeat)
-            log(f"  dynamax chunk {chunk}: {rate(runs, wall) / 1e6:.2f} M runs*steps/s, compile {comp:.2f} s")
-            if best_d is None or wall < best_d[0]:
-                best_d = (wall, comp, chunk)
-        rows["dynamax"] = {"rate": rate(runs, best_d[0]), "compile_s": best_d[1], "chunk": best_d[2],
+        best_d = fastest("dynamax", runs, lambda chunk: time_jax(dyn, data.prior, data.z, chunk, repeat), log, rate)
+        rows["dynamax"] = {"rate": rate(runs, best_d["wall"]), "compile_s": best_d["compile_s"], "chunk": best_d["chunk"],
                            "what": "filter only (jit + vmap)"}
         # the engine's per-step sums against the same sums from dynamax's estimates
         means = np.concatenate([np.asarray(dyn(data.prior[a:a + 1000], data.z[a:a + 1000])[0])
                                 for a in range(0, runs, 1000)])
         e = means[..., 0::2] - data.truth[:, 1:, 0::2]
-        np.testing.assert_allclose(best["sums"]["sumsq_pos"], np.sum(e**2, axis=0), rtol=dyn_tol["rtol"] * 1e3,
+        np.testing.assert_allclose(best["payload"]["sums"]["sumsq_pos"], np.sum(e**2, axis=0), rtol=dyn_tol["rtol"] * 1e3,
                                    err_msg=f"{case}: tracklab's error sums vs dynamax's estimates")
         log(f"  {case}: tracklab's per-step sums of squared position error = those of dynamax's estimates")
 
-    best_n = None
-    for chunk in CHUNKS:
-        if chunk > runs:
-            continue
-        wall = time_numpy(case, exp, data.prior, data.z, chunk, repeat)
-        log(f"  NumPy chunk {chunk}: {rate(runs, wall) / 1e6:.2f} M runs*steps/s")
-        if best_n is None or wall < best_n[0]:
-            best_n = (wall, chunk)
-    rows["numpy"] = {"rate": rate(runs, best_n[0]), "compile_s": 0.0, "chunk": best_n[1],
+    best_n = fastest("NumPy", runs, lambda chunk: (time_numpy(case, exp, data.prior, data.z, chunk, repeat), None, None),
+                     log, rate)
+    rows["numpy"] = {"rate": rate(runs, best_n["wall"]), "compile_s": 0.0, "chunk": best_n["chunk"],
                      "what": "filter only, vectorised over runs"}
 
     t0 = time.perf_counter()
