@@ -9,7 +9,7 @@ import numpy as np
 
 import tracklab
 from tracklab.config import load_experiment
-from tracklab.engine import _run_keys
+from tracklab.engine import simulate_runs
 from tracklab.metrics import statistics
 from tracklab.scenarios import MountFrame, Overflight
 
@@ -65,12 +65,9 @@ def test_windowed_prediction_errors_equal_those_of_the_runs_filtered_one_by_one(
     # the same runs: the engine's keys, truth, measurements and priors
     runs, T = exp.runs, exp.steps
     idx = jnp.arange(runs, dtype=jnp.uint32)
-    k_truth, k_meas, k_prior = _run_keys(jax.random.key(exp.seed), idx)
-    truth = jax.vmap(exp.scenario.simulate)(k_truth)
-    z = jax.vmap(exp.sensor.measure)(k_meas, truth[:, 1:, 0::2])
     P0 = exp.prior_covariance()
-    w = jax.vmap(lambda k: jax.random.normal(k, (4,), truth.dtype))(k_prior)
-    prior = truth[:, 0] + w @ np.linalg.cholesky(P0).T
+    truth, z, prior = simulate_runs(exp.scenario, exp.sensor, jnp.linalg.cholesky(jnp.asarray(P0)),
+                                    jax.random.key(exp.seed), idx)
     t = exp.dt * np.arange(1, T + 1)
     masks = {"": (np.arange(1, T + 1) >= 10), "[6-10 s]": (t >= 6.0 - 1e-9) & (t <= 10.0 + 1e-9)}
     masks["[elsewhere]"] = masks[""] & ~masks["[6-10 s]"]

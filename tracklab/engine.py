@@ -1,16 +1,24 @@
 """Monte-Carlo engine: simulate -> measure -> filter -> streaming statistics.
 
-One jitted function handles a chunk of runs: truth, measurements and the prior
-of run i come from ``fold_in(key, i)``; every filter runs over the chunk with
-``vmap`` inside a time-major ``lax.scan``; the per-run errors are reduced over
-the chunk to per-step sums (and maxima). Chunks are added up on the host, so
-memory grows with ``chunk × steps``, never with ``runs × steps``, and the
-statistics do not depend on the chunk size or on how many devices share a
-chunk (the run axis is sharded over all devices when there are several).
+One jitted function handles a chunk of runs. Run i's truth, measurements and
+prior come from ``fold_in(key, i)``. One ``lax.scan`` over the steps carries
+every run's truth and every filter's state: at each step the runs' truths
+advance, their measurements are made, every filter steps (``vmap`` over runs)
+and the errors are reduced over the runs to per-step sums (and maxima). The
+random draws of the whole chunk are made first, in float32 (``tracklab.random``),
+so nothing of size (runs × steps) is kept in the working precision. Chunks are
+added up on the host, so memory grows with ``chunk × steps`` at most, never with
+``runs × steps``.
+
+With several devices (on the CPU, ``import tracklab`` makes one per core) each
+device runs its share of the chunk's runs on its own (``shard_map``) and their
+sums are added once at the end. The statistics depend on neither the chunk size
+nor the device count, beyond the order of floating-point additions.
 
 A run in which a filter produces NaN/inf or a covariance that is not positive
 definite is *diverged* for that filter: it is counted and left out of that
-filter's averages; it never stops the batch.
+filter's averages (the chunk is run a second time without it, see
+``rerun_without_diverged``); it never stops the batch.
 """
 
 from __future__ import annotations
@@ -24,8 +32,9 @@ import jax.extend
 import jax.numpy as jnp
 import numpy as np
 
+from tracklab import random
 from tracklab.filters.core import Filter, Meas, Prior
-from tracklab.linalg import mahalanobis2, mahalanobis2_logdet
+from tracklab.linalg import mahalanobis2, mahalanobis2_logdet, norm, sum_elements
 from tracklab.models import Kinematic
 from tracklab.sensors import SensorSuite
 
@@ -89,40 +98,35 @@ def _run_keys(key, idx):
     return split[:, 0], split[:, 1], split[:, 2]
 
 
-def _filter_chunk(spec: FilterSpec, params, truth, z, prior_cv, P0_cv, live, dt, pattern=None, detect_all=True,
-                  windows=None):
-    """Run one filter over a chunk; reduce to per-step sums over healthy runs.
+@dataclass(frozen=True)
+class _Lane:
+    """One filter inside a chunk's scan: its vmapped step and how its state is batched."""
 
-    ``pattern`` (T, M) bool: which measurement components the sensors report at
-    each step (before missed detections); None: every component at every step.
-    ``detect_all``: no sensor misses a report, so which components are present is
-    the same in every run. ``windows``: name -> (T,) bool mask of steps, for the
-    per-run maxima of the one-step prediction error.
+    spec: FilterSpec
+    params: Any
+    init: Callable  # prior (2d,) of one run -> filter state
+    body: Callable  # (state, (z_k, truth_k, t_k, present_k, reports_k)) -> (state, per-run errors), one run
+    pattern: np.ndarray  # (T, m) which components of the filter's view are reported at each step
+    present: Any  # (T, m) pattern as an array when it is the same in every run, else None
+    reports: np.ndarray  # (T,) steps with some component reported
+    names: list  # prediction-error windows
+    wmask: np.ndarray  # (T, windows)
 
-    When some of the filter's state depends on neither a run's prior mean nor its
-    measurements (a linear KF's covariance and gain, the α-β filters' covariance,
-    with the same report pattern in every run), the filter runs as ``vmap`` over
-    runs of a ``lax.scan`` over steps: ``vmap`` batches only what depends on a
-    run's own data, so that state is computed once per step for the whole chunk,
-    not once per run. Otherwise it runs as a scan over steps of a vmap over runs.
-    """
+
+def _lane(spec: FilterSpec, params, P0_cv, pattern, detect_all, windows, dtype) -> _Lane:
+    """Set up one filter for the chunk's scan (``pattern``: the sensors' report pattern (T, M))."""
     flt = spec.filter
-    T = z.shape[1]
-    M = z.shape[2]
-    if pattern is None:
-        pattern = np.ones((T, M), bool)
-    pattern = np.asarray(pattern, bool)
+    T = pattern.shape[0]
     if spec.view is not None:  # the view's report pattern: NaN where the sensors have nothing
         with jax.ensure_compile_time_eval():
-            template = jnp.where(jnp.asarray(pattern), jnp.ones((), z.dtype), jnp.nan)
+            template = jnp.where(jnp.asarray(pattern), jnp.ones((), dtype), jnp.nan)
             pattern = np.isfinite(np.asarray(spec.view(template)))
-        z = jax.vmap(spec.view)(z)
     pv = spec.pv_index
-    present = jnp.asarray(pattern) if detect_all else None
-    reports = pattern.any(axis=-1)  # steps where some component may be there
+    reports = pattern.any(axis=-1)
     coast = flt.coast if (flt.coast is not None and not reports.all()) else None
-    t = dt * jnp.arange(1, T + 1, dtype=z.dtype)
-    P0_cv = jnp.asarray(P0_cv, z.dtype)
+    P0_cv = jnp.asarray(P0_cv, dtype)
+    names = list(windows or {})
+    wmask = (np.stack([np.asarray(windows[n], bool) for n in names], axis=1) if names else np.zeros((T, 0), bool))
 
     def init(prior_r):
         x0, P0 = spec.model.embed(prior_r, P0_cv, spec.prior_extra_var)
@@ -142,71 +146,80 @@ def _filter_chunk(spec: FilterSpec, params, truth, z, prior_cv, P0_cv, live, dt,
         nis = jnp.where(out.valid, nis, 0.0)
         logdet_s = jnp.where(out.valid, logdet_s, 0.0)
         e_pred = out.x_pred[pv[0::2]] - truth_k[0::2]  # one-step prediction error of the position
-        bad = ~(jnp.isfinite(nees) & jnp.all(jnp.isfinite(out.x)))
+        bad = ~jnp.isfinite(nees + sum_elements(out.x))
         bad = bad | (out.valid & ~jnp.isfinite(nis))
         return state, (e, nees, nis, out.valid, out.dof, bad, logdet_s, e_pred)
 
-    fixed = (t, present, jnp.asarray(reports))  # the same in every run
-    if present is not None and _has_shared_state(init, body, prior_cv[0], z[0, 0], truth[0, 1], fixed):
-        # vmap over runs of a scan over steps: the state the runs share stays unbatched
-        def one_run(prior_r, z_r, truth_r):
-            return jax.lax.scan(body, init(prior_r), (z_r, truth_r) + fixed)[1]
+    present = jnp.asarray(pattern) if detect_all else None
+    return _Lane(spec, params, init, body, pattern, present, reports, names, wmask)
 
-        outs = jax.vmap(one_run, out_axes=1)(prior_cv, z, truth[:, 1:])
-    else:  # a scan over steps of a vmap over runs (time-major: each step's runs side by side)
-        step = jax.vmap(body, in_axes=(0, (0, 0, None, None, None)))
-        xs = (jnp.swapaxes(z, 0, 1), jnp.swapaxes(truth[:, 1:], 0, 1)) + fixed
-        outs = jax.lax.scan(step, jax.vmap(init)(prior_cv), xs)[1]
-    e, nees, nis, upd, dof, bad, logdet_s, e_pred = outs
-    x_first = e[:, 0] + truth[0, 1:]  # the chunk's first run: estimates (T, 2d) in CV layout
 
-    diverged = jnp.any(bad, axis=0)  # (B,)
-    ok = live & ~diverged
-    okf = ok.astype(z.dtype)
-    e = jnp.where(ok[None, :, None], e, 0.0)
-    ep, ev = e[..., 0::2], e[..., 1::2]  # positions, velocities (T, B, d)
-    updf = (upd & ok[None, :]).astype(z.dtype)
-    neg = -jnp.inf
-    e_pred = jnp.where(ok[None, :, None], e_pred, 0.0)
-    a_pred = jnp.concatenate([jnp.abs(e_pred), jnp.linalg.norm(e_pred, axis=-1, keepdims=True)], axis=-1)
-    runmax = {  # per window: sum over runs of each run's largest |error| (per axis, then the norm)
-        f"runmax_pred@{name}": jnp.sum(jnp.max(jnp.where(jnp.asarray(mask)[:, None, None], a_pred, 0.0), axis=0), axis=0)
-        for name, mask in (windows or {}).items()
+def _lane_sums(e, nees, nis, upd, dof, bad, logdet_s, e_pred, ok, runmax, w_k, dtype):
+    """One step's sums over the runs ``ok`` (B,) of one filter's per-run errors (runs last)."""
+    okf = ok.astype(dtype)
+    e = jnp.where(ok, e, 0.0)  # (2d, B)
+    ep, ev = e[0::2], e[1::2]
+    e_pred = jnp.where(ok, e_pred, 0.0)  # (d, B)
+    updf = (upd & ok).astype(dtype)
+    a_pred = jnp.concatenate([jnp.abs(e_pred), norm(e_pred)[None]])  # (d + 1, B)
+    runmax = jnp.where(w_k[:, None, None], jnp.maximum(runmax, a_pred[None]), runmax)
+    # one reduction for all sums and one for all maxima (each reduction is a kernel per step)
+    add = {
+        "count": okf[None],
+        "sum_pos": ep,
+        "sum_vel": ev,
+        "sumsq_pos": ep**2,
+        "sumsq_vel": ev**2,
+        "sum_nees": jnp.where(ok, nees, 0.0)[None],
+        "sum_nis": (jnp.where(ok, nis, 0.0) * updf)[None],
+        "count_nis": updf[None],
+        "dof_nis": (dof * updf)[None],
+        "sum_logdet_s": (jnp.where(ok, logdet_s, 0.0) * updf)[None],
+        "sum_pred": e_pred,  # one-step prediction error, per axis
+        "sumsq_pred": e_pred**2,
     }
-    return runmax | {
-        "count": jnp.broadcast_to(jnp.sum(okf), (T,)),
-        "diverged": jnp.sum((live & diverged).astype(z.dtype)),
-        "sum_pos": jnp.sum(ep, axis=1),
-        "sum_vel": jnp.sum(ev, axis=1),
-        "sumsq_pos": jnp.sum(ep**2, axis=1),
-        "sumsq_vel": jnp.sum(ev**2, axis=1),
-        "max_abs_pos": jnp.max(jnp.where(ok[None, :, None], jnp.abs(ep), neg), axis=1),
-        "max_abs_vel": jnp.max(jnp.where(ok[None, :, None], jnp.abs(ev), neg), axis=1),
-        "max_err_pos": jnp.max(jnp.where(ok[None, :], jnp.linalg.norm(ep, axis=-1), neg), axis=1),
-        "max_err_vel": jnp.max(jnp.where(ok[None, :], jnp.linalg.norm(ev, axis=-1), neg), axis=1),
-        "sum_nees": jnp.sum(jnp.where(ok[None, :], nees, 0.0), axis=1),
-        "sum_nis": jnp.sum(jnp.where(ok[None, :], nis, 0.0) * updf, axis=1),
-        "count_nis": jnp.sum(updf, axis=1),
-        "dof_nis": jnp.sum(dof * updf, axis=1),
-        "sum_logdet_s": jnp.sum(jnp.where(ok[None, :], logdet_s, 0.0) * updf, axis=1),
-        "sum_pred": jnp.sum(e_pred, axis=1),  # one-step prediction error, per axis
-        "sumsq_pred": jnp.sum(e_pred**2, axis=1),
-        "example_x": x_first,  # the chunk's first run: estimates (T, 2d) in CV layout
+    top = {
+        "max_abs_pos": jnp.abs(ep),
+        "max_abs_vel": jnp.abs(ev),
+        "max_err_pos": norm(ep)[None],
+        "max_err_vel": norm(ev)[None],
     }
+    sums = _split(jnp.sum(jnp.concatenate(list(add.values())), axis=-1), add)
+    sums |= _split(jnp.max(jnp.where(ok, jnp.concatenate(list(top.values())), -jnp.inf), axis=-1), top)
+    return sums, runmax
+
+
+_PER_RUN_SCALARS = {"count", "sum_nees", "sum_nis", "count_nis", "dof_nis", "sum_logdet_s", "max_err_pos", "max_err_vel"}
+
+
+def _split(v, parts):
+    """Cut a vector into the named parts' lengths (the per-run scalars' parts become scalars)."""
+    out, i = {}, 0
+    for name, a in parts.items():
+        w = a.shape[0]
+        out[name] = v[i] if name in _PER_RUN_SCALARS else v[i:i + w]
+        i += w
+    return out
 
 
 def simulate_runs(scenario, sensor, L0, key, idx):
     """Runs ``idx`` as the engine simulates them: (truth (B, T+1, 2d), z (B, T, M), prior (B, 2d)).
 
     Run i's truth, measurements and prior mean come from ``fold_in(key, i)``;
-    ``L0`` is the Cholesky factor of the prior covariance (CV layout).
+    ``L0`` is the Cholesky factor of the prior covariance (CV layout). The engine
+    draws the same values step by step inside its scan; this gives them whole.
     """
     d = scenario.dim
     k_truth, k_meas, k_prior = _run_keys(key, idx)
     truth = jax.vmap(scenario.simulate)(k_truth)  # (B, T+1, 2d)
     z = jax.vmap(sensor.measure)(k_meas, truth[:, 1:, 0::2])  # (B, T, M)
-    w = jax.vmap(lambda k: jax.random.normal(k, (2 * d,), truth.dtype))(k_prior)
-    return truth, z, truth[:, 0] + w @ L0.T
+    return truth, z, _prior_means(truth[:, 0], k_prior, L0)
+
+
+def _prior_means(truth0, k_prior, L0):
+    """Run i's prior mean: its truth at the prior epoch plus a N(0, L0 L0ᵀ) draw."""
+    w = jax.vmap(lambda k: random.normal(k, (L0.shape[0],), L0.dtype))(k_prior)
+    return truth0 + w @ L0.T
 
 
 def _tainted(fn, args, flags):
@@ -225,9 +238,9 @@ def _tainted(fn, args, flags):
     return [not isinstance(v, jax.extend.core.Literal) and v in dep for v in jaxpr.outvars]
 
 
-def _has_shared_state(init, body, prior, z_k, truth_k, fixed):
-    """Whether some of a filter's state depends neither on a run's prior mean nor on its
-    measurements (a linear KF's covariance when the report pattern is the same in every run)."""
+def _shared_leaves(init, body, prior, z_k, truth_k, fixed):
+    """Per leaf of a filter's state: whether it depends neither on a run's prior mean nor on
+    its measurements (a linear KF's covariance when the report pattern is the same in every run)."""
     fixed_k = jax.tree_util.tree_map(lambda a: a[0], fixed)
     n_fixed = len(jax.tree_util.tree_leaves(fixed_k))
     state_flags = _tainted(init, (prior,), [True] * len(jax.tree_util.tree_leaves(prior)))
@@ -245,42 +258,196 @@ def _has_shared_state(init, body, prior, z_k, truth_k, fixed):
         if new == state_flags:
             break
         state_flags = new
-    return not all(state_flags)
+    return [not f for f in state_flags]
+
+
+def _streams(scenario, specs) -> bool:
+    """Whether the chunk can draw truth and measurements step by step inside its scan: the
+    truth is the same in every run or has a one-step ``advance``, and every filter sees each
+    step's measurement alone (a view that registers one sensor's reports in time needs them all)."""
+    truth_ok = not scenario.per_run or hasattr(scenario, "advance")
+    return truth_ok and all(s.view is None or getattr(s.view, "rowwise", False) for s in specs)
 
 
 def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, windows=None):
-    """The jitted per-chunk computation: (params_list, key, idx, live) -> sums.
+    """The jitted per-chunk computation: (params_list, key, idx, live[, exclude]) -> sums.
 
     ``windows``: name -> (steps,) bool mask, the report windows of the one-step
-    prediction error's per-run maxima.
+    prediction error's per-run maxima. ``exclude`` (filters, B) bool: runs left out
+    of each filter's sums (none if not given).
+
+    One ``lax.scan`` over the steps carries every run's truth and every filter's
+    state; at each step it draws the runs' measurements, steps every filter
+    (``vmap`` over runs) and reduces the errors over the runs, so nothing of size
+    (runs × steps) is made. (When a filter's view needs a sensor's whole sequence,
+    the truth and measurements are drawn first, as ``simulate_runs`` does, and read
+    step by step.)
     """
     d = scenario.dim
+    T = scenario.steps
     P0_cv = jnp.asarray(P0_cv)
     L0 = jnp.linalg.cholesky(P0_cv)
     if not isinstance(sensor, SensorSuite):
         sensor = SensorSuite((sensor,))
-    pattern = np.concatenate([np.repeat(s.report_mask(scenario.steps)[:, None], s.m, axis=1) for s in sensor.sensors],
+    pattern = np.concatenate([np.repeat(s.report_mask(T)[:, None], s.m, axis=1) for s in sensor.sensors],
                              axis=1)  # (steps, M): which components each sensor reports at each step
+    report_masks = np.stack([s.report_mask(T) for s in sensor.sensors], axis=1)  # (steps, sensors)
     detect_all = all(s.p_detect >= 1.0 for s in sensor.sensors)
     with_bound = scenario.linear_gaussian() is not None  # no PCRLB, no information to gather
+    stream = _streams(scenario, specs)
+    F = len(specs)
 
-    def chunk(params_list, key, idx, live):
-        truth, z, prior = simulate_runs(scenario, sensor, L0, key, idx)
-        pos = truth[:, 1:, 0::2]
-        if with_bound:  # expected measurement information at the true positions, for the PCRLB
-            info = jnp.sum(jnp.where(live[:, None, None, None], jax.vmap(sensor.information)(pos), 0.0), axis=0)
-        else:
-            info = jnp.zeros((pos.shape[1], d, d), truth.dtype)
-        out = {
-            "_info": info,
-            "_example": {"truth": truth[0], "z": z[0]},
-        }
-        for spec, params in zip(specs, params_list):
-            out[spec.label] = _filter_chunk(spec, params, truth, z, prior, P0_cv, live, dt, pattern, detect_all,
-                                            windows)
+    def local(params_list, key, idx, live, exclude):  # the runs ``idx`` on one device
+        dtype = L0.dtype
+        k_truth, k_meas, k_prior = _run_keys(key, idx)
+        B = idx.shape[0]
+        t = dt * jnp.arange(1, T + 1, dtype=dtype)
+        if stream and not scenario.per_run:  # one truth for every run: a table
+            table = jnp.asarray(scenario.simulate(None), dtype)  # (T+1, 2d)
+            truth0, src = table[0], None
+        elif stream:  # each run's truth advanced step by step
+            truth0 = jnp.broadcast_to(jnp.asarray(scenario.initial_state(), dtype), (B, 2 * d))
+            src = None
+        else:  # drawn whole, read step by step (time-major)
+            truth_all = jax.vmap(scenario.simulate, out_axes=1)(k_truth).astype(dtype)  # (T+1, B, 2d)
+            z_all = jax.vmap(sensor.measure, in_axes=(0, 1), out_axes=1)(k_meas, truth_all[1:, :, 0::2])
+            truth0, src = truth_all[0], (truth_all[1:], z_all)
+        prior = _prior_means(truth0, k_prior, L0.astype(dtype))
+        if stream:  # every draw of the chunk made at once (float32, cheap), read step by step (time-major)
+            meas_draws = jax.vmap(lambda k: sensor.draws(k, T), out_axes=1)(k_meas)
+            accel = jax.vmap(scenario.draws, out_axes=1)(k_truth) if scenario.per_run else None
+
+        lanes = [_lane(s, p, P0_cv, pattern, detect_all, windows, dtype) for s, p in zip(specs, params_list)]
+        z_views = []
+        if not stream:  # a view of the whole sequence per run, time-major
+            z_views = [z_all if ln.spec.view is None else jax.vmap(ln.spec.view, in_axes=1, out_axes=1)(z_all)
+                       for ln in lanes]
+        truth_batched = scenario.per_run or not stream
+        steps, carries = [], []
+        for ln in lanes:
+            fixed = (t, ln.present, jnp.asarray(ln.reports))
+            m_f = ln.pattern.shape[1]
+            z_ex, truth_ex = jnp.zeros((m_f,), dtype), jnp.zeros((2 * d,), dtype)
+            if ln.present is not None:
+                shared = _shared_leaves(ln.init, ln.body, prior[0], z_ex, truth_ex, fixed)
+            else:
+                shared = [False] * len(jax.tree_util.tree_leaves(jax.eval_shape(ln.init, prior[0])))
+            treedef = jax.tree_util.tree_structure(jax.eval_shape(ln.init, prior[0]))
+            axes = jax.tree_util.tree_unflatten(treedef, [None if s else 0 for s in shared])
+            # per-run outputs with runs last: each quantity a contiguous vector over the runs
+            steps.append(jax.vmap(ln.body, in_axes=(axes, (0, 0 if truth_batched else None, None, None, None)),
+                                  out_axes=(axes, -1)))
+            state0 = jax.vmap(ln.init, out_axes=axes)(prior)
+            shapes = jax.eval_shape(steps[-1], state0, (jnp.zeros((B, m_f), dtype),
+                                                        jnp.zeros((B, 2 * d) if truth_batched else (2 * d,), dtype),
+                                                        t[0], None if ln.present is None else ln.present[0],
+                                                        jnp.asarray(ln.reports)[0]))[1]
+            nothing = (jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes),  # no step yet
+                       jnp.zeros((len(ln.names),), bool), jnp.zeros((2 * d,), dtype))
+            carries.append((state0, nothing, jnp.zeros((B,), bool), jnp.zeros((len(ln.names), d + 1, B), dtype)))
+
+        def lane_stats(i, pending, bad_any, runmax):
+            per_run, w_k, x_first = pending
+            bad_any = bad_any | per_run[5]
+            ok = live & ~exclude[i] & ~bad_any
+            sums, runmax = _lane_sums(*per_run, ok, runmax, w_k, dtype)
+            return sums | {"example_x": x_first}, bad_any, runmax
+
+        def scan_step(carry, inp):
+            truth_prev, lane_carries = carry
+            k, t_k, src_k, zv_k, lane_in = inp
+            if not stream:
+                truth_k, z_k = src_k
+            else:
+                accel_k, meas_k = src_k
+                truth_k = jax.vmap(scenario.advance)(truth_prev, accel_k) if scenario.per_run else table[k + 1]
+                z_k = jax.vmap(sensor.measure_step, in_axes=(0, None, None, 0 if truth_batched else None))(
+                    meas_k, k, T, truth_k[..., 0::2])
+            out = {"_example": {"truth": truth_k[0] if truth_batched else truth_k, "z": z_k[0]}}
+            if with_bound:  # expected measurement information at the true positions, for the PCRLB
+                pos_k = truth_k[..., 0::2]
+                n_live = jnp.sum(live.astype(dtype))
+                info = 0.0
+                for j, s in enumerate(sensor.sensors):
+                    if truth_batched:
+                        I = jnp.sum(jnp.where(live[:, None, None], jax.vmap(s.information)(pos_k), 0.0), axis=0)
+                    else:
+                        I = n_live * s.information(pos_k)
+                    info = info + jnp.asarray(report_masks, dtype)[k, j] * I
+                out["_info"] = info
+            new_carries = []
+            for i, (ln, step, (state, pending, bad_any, runmax)) in enumerate(zip(lanes, steps, lane_carries)):
+                # the sums of the step before, from its per-run errors held in the carry: a loop
+                # variable is computed once, where XLA would otherwise recompute the filter's
+                # arithmetic inside every reduction that reads it
+                out[ln.spec.label], bad_any, runmax = lane_stats(i, pending, bad_any, runmax)
+                present_k, reports_k, w_k = lane_in[i]
+                z_f = zv_k[i] if not stream else (z_k if ln.spec.view is None else ln.spec.view(z_k))
+                state, per_run = step(state, (z_f, truth_k, t_k, present_k, reports_k))
+                x_first = per_run[0][:, 0] + (truth_k[0] if truth_batched else truth_k)  # run 0's estimate
+                new_carries.append((state, (per_run, w_k, x_first), bad_any, runmax))
+            return (truth_k if (stream and scenario.per_run) else None, new_carries), out
+
+        lane_in = [(ln.present, jnp.asarray(ln.reports), jnp.asarray(ln.wmask)) for ln in lanes]
+        if stream:
+            src = (accel, meas_draws)
+        xs = (jnp.arange(T), t, src, z_views, lane_in)
+        (_, finals), out = jax.lax.scan(scan_step, (truth0 if (stream and scenario.per_run) else None, carries), xs)
+        out["_example"]["truth"] = jnp.concatenate([(truth0[0] if truth_batched else truth0)[None],
+                                                    out["_example"]["truth"]])
+        if not with_bound:
+            out["_info"] = jnp.zeros((T, d, d), dtype)
+        for i, (ln, (_, pending, bad_any, runmax)) in enumerate(zip(lanes, finals)):
+            last, bad_any, runmax = lane_stats(i, pending, bad_any, runmax)  # the last step's sums
+            out[ln.spec.label] = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[1:], b[None]]),
+                                                         out[ln.spec.label], last)
+            ok = live & ~exclude[i] & ~bad_any
+            for j, name in enumerate(ln.names):  # sum over runs of each run's largest |error| (per axis, then norm)
+                out[ln.spec.label][f"runmax_pred@{name}"] = jnp.sum(jnp.where(ok, runmax[j], 0.0), axis=-1)
+            out[ln.spec.label]["diverged"] = jnp.sum((live & bad_any).astype(dtype))
+            out[ln.spec.label]["diverged_runs"] = live & bad_any
         return out
 
+    devices = jax.devices()
+    n_dev = len(devices)
+    if n_dev > 1:  # each device reduces its own runs; the per-device sums are combined once at the end
+        mesh = jax.sharding.Mesh(np.array(devices), ("runs",))
+        runs_axis = jax.sharding.PartitionSpec("runs")
+        per_device = jax.shard_map(
+            lambda *a: jax.tree_util.tree_map(lambda v: v[None], local(*a)), mesh=mesh,
+            in_specs=(jax.sharding.PartitionSpec(), jax.sharding.PartitionSpec(), runs_axis, runs_axis,
+                      jax.sharding.PartitionSpec(None, "runs")),
+            out_specs=runs_axis, check_vma=False)
+
+    def chunk(params_list, key, idx, live, exclude=None):
+        B = idx.shape[0]
+        if exclude is None:
+            exclude = jnp.zeros((len(specs), B), bool)
+        if n_dev == 1:
+            return local(params_list, key, idx, live, exclude)
+        pad = -B % n_dev  # dead runs to fill the last device
+        if pad:
+            idx = jnp.concatenate([idx, jnp.zeros((pad,), idx.dtype)])
+            live = jnp.concatenate([live, jnp.zeros((pad,), bool)])
+            exclude = jnp.concatenate([exclude, jnp.ones((len(specs), pad), bool)], axis=1)
+        return _combine(per_device(params_list, key, idx, live, exclude), B)
+
     return jax.jit(chunk)
+
+
+def _combine(out, B):
+    """One chunk's results from the per-device results (leading axis: device)."""
+    def leaf(path, v):
+        name = getattr(path[-1], "key", "")
+        if path[0].key == "_example" or name == "example_x":  # run 0 lives on the first device
+            return v[0]
+        if name == "diverged_runs":
+            return v.reshape(-1)[:B]
+        if name.startswith("max_"):
+            return jnp.max(v, axis=0)
+        return jnp.sum(v, axis=0)
+
+    return jax.tree_util.tree_map_with_path(leaf, out)
 
 
 def _run_sharding():
@@ -323,7 +490,7 @@ def _monte_carlo(scenario, sensor, specs, runs, key, P0_cv, chunk, params, progr
     dt = float(scenario.dt)
     sharding, n_dev = _run_sharding()
     chunk = int(min(chunk or 1000, runs))
-    chunk = -(-chunk // n_dev) * n_dev  # a multiple of the device count
+    chunk = -(-chunk // n_dev) * n_dev  # a multiple of the device count (no padding needed)
     fn = make_chunk_fn(scenario, sensor, specs, P0_cv, dt, windows)
     params_list = list(params) if params is not None else [s.filter.params for s in specs]
     if precision == "float32":
@@ -347,6 +514,7 @@ def _monte_carlo(scenario, sensor, specs, runs, key, P0_cv, chunk, params, progr
         out = jax.device_get(fn(params_list, key, idx_j, live_j))
         if c == 0:
             compile_s = time.perf_counter() - t0
+        out = rerun_without_diverged(fn, out, [s.label for s in specs], params_list, key, idx_j, live_j, sharding)
         info += out.pop("_info")
         ex = out.pop("_example")
         if c == 0:  # run 0, for trajectory figures
@@ -375,6 +543,25 @@ def _monte_carlo(scenario, sensor, specs, runs, key, P0_cv, chunk, params, progr
         units=tuple(getattr(scenario, "units", ("m", "m/s"))),
         windows=list(windows or {}),
     )
+
+
+def rerun_without_diverged(fn, out, labels, params_list, key, idx, live, sharding=None):
+    """A chunk's sums with every run that diverged anywhere left out of them from its first step.
+
+    The scan drops a run from the sums only from the step it turns bad; when a
+    filter had such runs, the chunk is run again (same draws, same compiled
+    program) with them excluded from the start. Pops ``diverged_runs``.
+    """
+    masks = np.stack([np.asarray(out[label].pop("diverged_runs")) for label in labels])
+    if not masks.any():
+        return out
+    exclude = jnp.asarray(masks)
+    if sharding is not None:
+        exclude = jax.device_put(exclude, jax.sharding.NamedSharding(sharding.mesh, jax.sharding.PartitionSpec(None, "runs")))
+    out = jax.device_get(fn(params_list, key, idx, live, exclude))
+    for label in labels:
+        out[label].pop("diverged_runs")
+    return out
 
 
 def _pcrlb64(scenario, P0_cv, info_pos):

@@ -75,17 +75,34 @@ def _forward(L, v):
     return jnp.stack(y)
 
 
+def sum_elements(v):
+    """The sum of a short vector's elements as a chain of elementwise adds.
+
+    Under ``vmap`` a ``jnp.sum`` over a few elements per run becomes a reduction
+    kernel of its own; a chain of adds fuses with what surrounds it.
+    """
+    acc = v[0]
+    for i in range(1, v.shape[0]):
+        acc = acc + v[i]
+    return acc
+
+
+def norm(v):
+    """Euclidean norm of a short vector (elementwise, see ``sum_elements``)."""
+    return jnp.sqrt(sum_elements(v * v))
+
+
 def mahalanobis2(A, v):
     """vᵀ A⁻¹ v for symmetric positive-definite A (NaN if A is not)."""
     y = _forward(cholesky(A), v)
-    return jnp.sum(y * y)
+    return sum_elements(y * y)
 
 
 def mahalanobis2_logdet(A, v):
     """(vᵀ A⁻¹ v, log det A) for symmetric positive-definite A (NaN if A is not)."""
     L = cholesky(A)
     y = _forward(L, v)
-    return jnp.sum(y * y), 2.0 * jnp.sum(jnp.log(jnp.diagonal(L)))
+    return sum_elements(y * y), 2.0 * sum_elements(jnp.log(jnp.diagonal(L)))
 
 
 def spd_inverse(A):

@@ -75,8 +75,8 @@ def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=
         factors = dict(zip(names, f))
         return [scaled(p, factors) for p in base]
 
-    def many(factors, key, idx, live):  # vmapped over the grid points of a block
-        return jax.vmap(lambda f: fn(point_params(f), key, idx, live))(factors)
+    def many(factors, key, idx, live, exclude):  # vmapped over the grid points of a block
+        return jax.vmap(lambda f, ex: fn(point_params(f), key, idx, live, ex))(factors, exclude)
 
     many = jax.jit(many)
     grid = jnp.asarray(np.array(points, float).reshape(P, len(axes)))
@@ -91,7 +91,13 @@ def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=
             fb = jnp.concatenate([fb, jnp.repeat(fb[-1:], pad, axis=0)])
         for c in range(n_chunks):
             idx = np.arange(c * chunk, (c + 1) * chunk, dtype=np.uint32)
-            out = jax.device_get(many(fb, key, jnp.asarray(idx), jnp.asarray(idx < runs)))
+            args = (fb, key, jnp.asarray(idx), jnp.asarray(idx < runs))
+            out = jax.device_get(many(*args, jnp.zeros((block, len(specs), chunk), bool)))
+            masks = np.stack([out[s.label].pop("diverged_runs") for s in specs], axis=1)  # (block, filters, chunk)
+            if masks.any():  # leave every diverged run out from its first step (see engine.rerun_without_diverged)
+                out = jax.device_get(many(*args, jnp.asarray(masks)))
+                for s in specs:
+                    out[s.label].pop("diverged_runs")
             for j in range(block - pad):
                 info[b0 + j] += out["_info"][j]
                 for s in specs:

@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 
 from tracklab.linalg import mm, spd_inverse
+from tracklab.sensors.geometry import wrap
 
 
 class Prior(NamedTuple):
@@ -116,7 +117,7 @@ def masked_kalman_update(x, P, nu, H, R, used):
 
 def wrap_angle(a):
     """Wrap to (-π, π]."""
-    return jnp.pi - jnp.mod(jnp.pi - a, 2.0 * jnp.pi)
+    return wrap(a)
 
 
 def wrap_components(nu, angle_mask):

@@ -72,6 +72,7 @@ class Select:
 
     suite: SensorSuite
     names: tuple[str, ...]
+    rowwise = True  # each step's measurement on its own (the engine may draw them step by step)
 
     @property
     def model(self):

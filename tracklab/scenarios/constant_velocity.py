@@ -17,6 +17,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from tracklab import random
+from tracklab.linalg import mm
 from tracklab.models import cv
 
 
@@ -43,18 +45,26 @@ class ConstantVelocity:
         m = self.model
         return m.F, np.asarray(m.Q(self.accel_sigma**2))
 
+    per_run = True  # every run draws its own truth
+
+    def draws(self, key):
+        """One run's standard-normal accelerations (steps, dim), float32."""
+        return random.normal(key, (self.steps, self.dim))
+
+    def advance(self, s, w):
+        """The truth one step after ``s`` given that step's standard-normal draws ``w`` (dim,)."""
+        m = self.model
+        return mm(np.asarray(m.F), s) + mm(np.asarray(m.G), self.accel_sigma * w.astype(s.dtype))
+
     def simulate(self, key):
         """Truth states (steps + 1, 2·dim) in CV layout; row 0 is the prior epoch."""
-        m = self.model
-        F, G = jnp.asarray(m.F), jnp.asarray(m.G)
         s0 = jnp.asarray(self.initial_state())
-        w = self.accel_sigma * jax.random.normal(key, (self.steps, self.dim), s0.dtype)
 
-        def advance(s, wk):
-            s = F @ s + G @ wk
+        def advance(s, w):
+            s = self.advance(s, w)
             return s, s
 
-        _, path = jax.lax.scan(advance, s0, w)
+        _, path = jax.lax.scan(advance, s0, self.draws(key))
         return jnp.concatenate([s0[None], path])
 
 

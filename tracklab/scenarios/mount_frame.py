@@ -35,6 +35,10 @@ class MountFrame:
     units = ("deg", "deg/s")
 
     @property
+    def per_run(self):
+        return self.scenario.per_run
+
+    @property
     def dt(self):
         return self.scenario.dt
 

@@ -29,6 +29,7 @@ class Overflight:
     heading: float = 90.0  # degrees clockwise from north
 
     dim = 3
+    per_run = False  # the same truth in every run
 
     def truth(self) -> np.ndarray:
         h = np.radians(self.heading)

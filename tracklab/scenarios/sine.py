@@ -21,6 +21,7 @@ class Sine:
     phase: float = 0.0  # rad
 
     dim = 1
+    per_run = False  # the same truth in every run
     axes = ("angle",)
     units = ("deg", "deg/s")
 

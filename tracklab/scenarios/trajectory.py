@@ -95,6 +95,7 @@ class Trajectory:
     dt: float
     steps: int
     dim: int = 3
+    per_run = False  # the same truth in every run
     start: float = 0.0  # seconds after the file's first time
 
     def table(self) -> np.ndarray:

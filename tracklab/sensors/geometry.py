@@ -30,6 +30,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from tracklab import random
+
 
 def polar_h(p):
     x, y = p[..., 0], p[..., 1]
@@ -58,7 +60,9 @@ _ANGLES = ("angle", "az", "el")
 
 
 def wrap(a):
-    return jnp.pi - jnp.mod(jnp.pi - a, 2.0 * jnp.pi)
+    """An angle wrapped to (−π, π]: a + 2π⌊(π − a)/2π⌋, i.e. π − mod(π − a, 2π) with a floor,
+    which XLA vectorises, where ``jnp.mod``'s fmod is a scalar library call per element."""
+    return a + 2.0 * jnp.pi * jnp.floor((jnp.pi - a) / (2.0 * jnp.pi))
 
 
 def epochs(steps: int, dt: float, period: float, offset: float) -> np.ndarray:
@@ -108,17 +112,28 @@ class Sensor:
             return np.ones(steps, bool)
         return epochs(steps, self.dt, self.period, self.offset)
 
-    def measure(self, key, pos):
-        """Noisy measurements of a position sequence ``pos`` (T, dim) -> (T, m)."""
+    def draws(self, key, steps):
+        """One run's draws, float32: standard-normal noise (steps, m) and, when the sensor can
+        miss, uniforms (steps,) that decide its detections."""
         k_noise, k_det = jax.random.split(key)
-        noise = jax.random.normal(k_noise, pos.shape[:-1] + (self.m,), pos.dtype)
-        z = self.h(pos) + noise * jnp.asarray(self.sigma, pos.dtype)
+        u = random.uniform(k_det, (steps,)) if self.p_detect < 1.0 else None
+        return random.normal(k_noise, (steps, self.m)), u
+
+    def measure_step(self, draws_k, k, steps, p):
+        """Step k's noisy measurement (m,) of the position ``p`` (dim,), from that step's draws."""
+        noise, u = draws_k
+        z = self.h(p) + noise.astype(p.dtype) * jnp.asarray(self.sigma, p.dtype)
         if any(self.angle_mask):
             z = jnp.where(jnp.asarray(self.angle_mask), wrap(z), z)
-        present = jnp.asarray(self.report_mask(pos.shape[-2]))
-        if self.p_detect < 1.0:
-            present = present & (jax.random.uniform(k_det, pos.shape[:-1]) < self.p_detect)
-        return jnp.where(present[..., None], z, jnp.nan)
+        present = jnp.asarray(self.report_mask(steps))[k]
+        if u is not None:
+            present = present & (u < self.p_detect)
+        return jnp.where(present, z, jnp.nan)
+
+    def measure(self, key, pos):
+        """Noisy measurements of a position sequence ``pos`` (T, dim) -> (T, m)."""
+        T = pos.shape[0]
+        return jax.vmap(lambda d, k, p: self.measure_step(d, k, T, p))(self.draws(key, T), jnp.arange(T), pos)
 
     def information(self, p):
         """Expected Fisher information of one report about the position: Pd·Hᵀ R⁻¹ H."""
@@ -179,9 +194,16 @@ class SensorSuite:
     def h(self, p):
         return jnp.concatenate([s.h(p) for s in self.sensors], axis=-1)
 
-    def measure(self, key, pos):
+    def draws(self, key, steps):
         keys = jax.random.split(key, len(self.sensors))
-        return jnp.concatenate([s.measure(k, pos) for s, k in zip(self.sensors, keys)], axis=-1)
+        return tuple(s.draws(k, steps) for s, k in zip(self.sensors, keys))
+
+    def measure_step(self, draws_k, k, steps, p):
+        return jnp.concatenate([s.measure_step(d, k, steps, p) for s, d in zip(self.sensors, draws_k)], axis=-1)
+
+    def measure(self, key, pos):
+        T = pos.shape[0]
+        return jax.vmap(lambda d, k, p: self.measure_step(d, k, T, p))(self.draws(key, T), jnp.arange(T), pos)
 
     def information(self, pos):
         """Per-step expected position information (T, dim, dim), only at report epochs."""
