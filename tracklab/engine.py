@@ -450,14 +450,6 @@ def _combine(out, B):
     return jax.tree_util.tree_map_with_path(leaf, out)
 
 
-def _run_sharding():
-    devices = jax.devices()
-    if len(devices) == 1:
-        return None, 1
-    mesh = jax.sharding.Mesh(np.array(devices), ("runs",))
-    return jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("runs")), len(devices)
-
-
 def monte_carlo(
     scenario,
     sensor,
@@ -479,18 +471,24 @@ def monte_carlo(
     by all filters in that run. ``precision = "float32"`` traces and runs the
     simulation and the filters in single precision (JAX's 64-bit mode off for
     them); sums are accumulated on the host in float64 either way, and the
-    random draws differ from the float64 ones. ``windows`` (name -> (steps,)
+    random draws are the same (made in float32 in both). ``windows`` (name -> (steps,)
     bool mask) are where each run's largest one-step prediction error is taken.
     """
     with jax.enable_x64(precision == "float64"):
         return _monte_carlo(scenario, sensor, specs, runs, key, P0_cv, chunk, params, progress, precision, windows)
 
 
+def default_chunk(scenario, sensor, budget=2**28) -> int:
+    """Runs per chunk when the experiment does not say: as many as keep a chunk's per-step
+    arrays (truth and measurements of every run and step, 8 bytes a value) near ``budget``
+    bytes (256 MiB), between 64 and 10 000 (beyond which throughput no longer grows)."""
+    width = 2 * scenario.dim + sensor.m
+    return int(np.clip(budget // (8 * scenario.steps * width), 64, 10_000))
+
+
 def _monte_carlo(scenario, sensor, specs, runs, key, P0_cv, chunk, params, progress, precision, windows):
     dt = float(scenario.dt)
-    sharding, n_dev = _run_sharding()
-    chunk = int(min(chunk or 1000, runs))
-    chunk = -(-chunk // n_dev) * n_dev  # a multiple of the device count (no padding needed)
+    chunk = int(min(chunk or default_chunk(scenario, sensor), runs))
     fn = make_chunk_fn(scenario, sensor, specs, P0_cv, dt, windows)
     params_list = list(params) if params is not None else [s.filter.params for s in specs]
     if precision == "float32":
@@ -508,13 +506,11 @@ def _monte_carlo(scenario, sensor, specs, runs, key, P0_cv, chunk, params, progr
         idx = np.arange(c * chunk, (c + 1) * chunk, dtype=np.uint32)
         live = idx < runs
         idx_j, live_j = jnp.asarray(idx), jnp.asarray(live)
-        if sharding is not None:
-            idx_j, live_j = jax.device_put(idx_j, sharding), jax.device_put(live_j, sharding)
         t0 = time.perf_counter()
         out = jax.device_get(fn(params_list, key, idx_j, live_j))
         if c == 0:
             compile_s = time.perf_counter() - t0
-        out = rerun_without_diverged(fn, out, [s.label for s in specs], params_list, key, idx_j, live_j, sharding)
+        out = rerun_without_diverged(fn, out, [s.label for s in specs], params_list, key, idx_j, live_j)
         info += out.pop("_info")
         ex = out.pop("_example")
         if c == 0:  # run 0, for trajectory figures
@@ -545,7 +541,7 @@ def _monte_carlo(scenario, sensor, specs, runs, key, P0_cv, chunk, params, progr
     )
 
 
-def rerun_without_diverged(fn, out, labels, params_list, key, idx, live, sharding=None):
+def rerun_without_diverged(fn, out, labels, params_list, key, idx, live):
     """A chunk's sums with every run that diverged anywhere left out of them from its first step.
 
     The scan drops a run from the sums only from the step it turns bad; when a
@@ -556,8 +552,6 @@ def rerun_without_diverged(fn, out, labels, params_list, key, idx, live, shardin
     if not masks.any():
         return out
     exclude = jnp.asarray(masks)
-    if sharding is not None:
-        exclude = jax.device_put(exclude, jax.sharding.NamedSharding(sharding.mesh, jax.sharding.PartitionSpec(None, "runs")))
     out = jax.device_get(fn(params_list, key, idx, live, exclude))
     for label in labels:
         out[label].pop("diverged_runs")
