@@ -22,7 +22,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 EXPERIMENT = ROOT / "experiments" / "lidar_crossing.toml"
-DEFAULT_CHUNK = 1000  # what engine.monte_carlo uses when the experiment sets no chunk
+DEFAULT_CHUNK = 1000  # runs per chunk of the per-filter table
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -288,7 +288,7 @@ def render(info, cmd, cfg, single, alls, sim, sweep, mems, total_s, load_end):
     L.append(f"- Python {info['python']}, jax {info['jax']}, jaxlib {info['jaxlib']}, backend {info['backend']}, float64")
     L.append(f"- Command: `{cmd}`")
     L.append(f"- Steps per run: {cfg['steps']}; chunk size {cfg['chunk']} unless stated "
-             "(engine.monte_carlo's default; the experiment file sets none)")
+             "(engine.default_chunk gives 1 000 per device)")
     L.append(f"- Total benchmark time: {total_s:.0f} s")
     L.append("")
     L.append(f"## Throughput and compile time ({cfg['runs']} runs, chunk {cfg['chunk']})")

@@ -9,7 +9,6 @@ import textwrap
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
 from tracklab.config import load_experiment
 from tracklab.engine import FilterSpec, monte_carlo

@@ -209,7 +209,6 @@ def simulate_runs(scenario, sensor, L0, key, idx):
     ``L0`` is the Cholesky factor of the prior covariance (CV layout). The engine
     draws the same values step by step inside its scan; this gives them whole.
     """
-    d = scenario.dim
     k_truth, k_meas, k_prior = _run_keys(key, idx)
     truth = jax.vmap(scenario.simulate)(k_truth)  # (B, T+1, 2d)
     z = jax.vmap(sensor.measure)(k_meas, truth[:, 1:, 0::2])  # (B, T, M)
@@ -295,7 +294,6 @@ def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, wind
     detect_all = all(s.p_detect >= 1.0 for s in sensor.sensors)
     with_bound = scenario.linear_gaussian() is not None  # no PCRLB, no information to gather
     stream = _streams(scenario, specs)
-    F = len(specs)
 
     def local(params_list, key, idx, live, exclude):  # the runs ``idx`` on one device
         dtype = L0.dtype
@@ -479,11 +477,12 @@ def monte_carlo(
 
 
 def default_chunk(scenario, sensor, budget=2**28) -> int:
-    """Runs per chunk when the experiment does not say: as many as keep a chunk's per-step
-    arrays (truth and measurements of every run and step, 8 bytes a value) near ``budget``
-    bytes (256 MiB), between 64 and 10 000 (beyond which throughput no longer grows)."""
+    """Runs per chunk when the experiment does not say: 1 000 per device (with several filters
+    in the scan, larger shares run slower on the CPU: their states no longer stay in cache),
+    fewer if a chunk's per-step arrays (truth and measurements of every run and step, 8 bytes
+    a value) would pass ``budget`` bytes (256 MiB); at least 64."""
     width = 2 * scenario.dim + sensor.m
-    return int(np.clip(budget // (8 * scenario.steps * width), 64, 10_000))
+    return int(np.clip(budget // (8 * scenario.steps * width), 64, 1000 * jax.device_count()))
 
 
 def _monte_carlo(scenario, sensor, specs, runs, key, P0_cv, chunk, params, progress, precision, windows):
