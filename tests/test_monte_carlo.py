@@ -153,7 +153,7 @@ def test_statistics_do_not_depend_on_device_count(tmp_path):
     script.write_text(DEVICE_SCRIPT)
     ref = _flat(load_experiment(path).monte_carlo(chunk=301))
     assert jax.device_count() == 1
-    for devices, chunk in ((1, 100), (2, 100), (4, 301), (4, 100)):
+    for devices, chunk in ((1, 100), (2, 100), (4, 301)):
         env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}")
         out = subprocess.run([sys.executable, str(script), str(path), str(chunk)], env=env, capture_output=True,
                              text=True, check=True)
