@@ -20,7 +20,7 @@ def _distinct_experiments():
     float32 tests. A file with the same scenario kind, sensor kinds and filter kinds as one already
     here, or whose filters are a subset of the filters of another file with the same scenario and
     sensor kinds (another recorded flight, other noise levels or filter settings: the real-flight
-    radar files, tuning_stf, lidar_crossing within lidar_crossing_coarse_angle, the tuning files),
+    radar files, lidar_crossing_coarse_angle (lidar_crossing's filter kinds), the tuning files),
     is left out: it exercises nothing new and would double the suite's compile time."""
     import tomllib
 
