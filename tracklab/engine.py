@@ -103,7 +103,6 @@ class _Lane:
     """One filter inside a chunk's scan: its vmapped step and how its state is batched."""
 
     spec: FilterSpec
-    params: Any
     init: Callable  # prior (2d,) of one run -> filter state
     body: Callable  # (state, (z_k, truth_k, t_k, present_k, reports_k)) -> (state, per-run errors), one run
     pattern: np.ndarray  # (T, m) which components of the filter's view are reported at each step
@@ -151,7 +150,7 @@ def _lane(spec: FilterSpec, params, P0_cv, pattern, detect_all, windows, dtype) 
         return state, (e, nees, nis, out.valid, out.dof, bad, logdet_s, e_pred)
 
     present = jnp.asarray(pattern) if detect_all else None
-    return _Lane(spec, params, init, body, pattern, present, reports, names, wmask)
+    return _Lane(spec, init, body, pattern, present, reports, names, wmask)
 
 
 def _lane_sums(e, nees, nis, upd, dof, bad, logdet_s, e_pred, ok, runmax, w_k, dtype):
@@ -311,6 +310,8 @@ def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, wind
             z_all = jax.vmap(sensor.measure, in_axes=(0, 1), out_axes=1)(k_meas, truth_all[1:, :, 0::2])
             truth0, src = truth_all[0], (truth_all[1:], z_all)
         prior = _prior_means(truth0, k_prior, L0.astype(dtype))
+        n_live = jnp.sum(live.astype(dtype))
+        reports_by_sensor = jnp.asarray(report_masks, dtype)  # (steps, sensors)
         if stream:  # every draw of the chunk made at once (float32, cheap), read step by step (time-major)
             meas_draws = jax.vmap(lambda k: sensor.draws(k, T), out_axes=1)(k_meas)
             accel = jax.vmap(scenario.draws, out_axes=1)(k_truth) if scenario.per_run else None
@@ -326,11 +327,11 @@ def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, wind
             fixed = (t, ln.present, jnp.asarray(ln.reports))
             m_f = ln.pattern.shape[1]
             z_ex, truth_ex = jnp.zeros((m_f,), dtype), jnp.zeros((2 * d,), dtype)
+            treedef = jax.tree_util.tree_structure(jax.eval_shape(ln.init, prior[0]))
             if ln.present is not None:
                 shared = _shared_leaves(ln.init, ln.body, prior[0], z_ex, truth_ex, fixed)
             else:
-                shared = [False] * len(jax.tree_util.tree_leaves(jax.eval_shape(ln.init, prior[0])))
-            treedef = jax.tree_util.tree_structure(jax.eval_shape(ln.init, prior[0]))
+                shared = [False] * treedef.num_leaves
             axes = jax.tree_util.tree_unflatten(treedef, [None if s else 0 for s in shared])
             # per-run outputs with runs last: each quantity a contiguous vector over the runs
             steps.append(jax.vmap(ln.body, in_axes=(axes, (0, 0 if truth_batched else None, None, None, None)),
@@ -364,14 +365,13 @@ def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, wind
             out = {"_example": {"truth": truth_k[0] if truth_batched else truth_k, "z": z_k[0]}}
             if with_bound:  # expected measurement information at the true positions, for the PCRLB
                 pos_k = truth_k[..., 0::2]
-                n_live = jnp.sum(live.astype(dtype))
                 info = 0.0
                 for j, s in enumerate(sensor.sensors):
                     if truth_batched:
                         I = jnp.sum(jnp.where(live[:, None, None], jax.vmap(s.information)(pos_k), 0.0), axis=0)
                     else:
                         I = n_live * s.information(pos_k)
-                    info = info + jnp.asarray(report_masks, dtype)[k, j] * I
+                    info = info + reports_by_sensor[k, j] * I
                 out["_info"] = info
             new_carries = []
             for i, (ln, step, (state, pending, bad_any, runmax)) in enumerate(zip(lanes, steps, lane_carries)):
@@ -611,7 +611,7 @@ def run_filter(flt: Filter, z, *, x0, P0, params=None, dt: float = 1.0) -> Filte
     z = jnp.asarray(z)
     batched = z.ndim == 3
     zb = z if batched else z[None]
-    N, T = zb.shape[0], zb.shape[1]
+    N = zb.shape[0]
     x0 = jnp.broadcast_to(jnp.asarray(x0, zb.dtype), (N,) + np.shape(x0)[-1:])
     P0 = jnp.broadcast_to(jnp.asarray(P0, zb.dtype), (N,) + np.shape(P0)[-2:])
     out = _run_filter_jit(flt.init, flt.step, params, zb, x0, P0, float(dt))

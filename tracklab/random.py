@@ -67,26 +67,27 @@ def bits(key, shape, width: int, offset=0):
     raise ValueError(f"width must be 32 or 64, got {width}")
 
 
-def standard_normal(key, shape, dtype=jnp.float32, offset=0):
-    """The values of ``jax.random.normal(key, shape, dtype)``, dtype float32 or float64
-    (``offset``: as in ``bits``)."""
+def uniform(key, shape, dtype=jnp.float32, offset=0):
+    """The values of ``jax.random.uniform(key, shape, dtype)``: [0, 1), dtype float32 or float64
+    (``offset``: as in ``bits``). The bits fill the mantissa of a float in [1, 2)."""
     dtype = np.dtype(dtype)
     finfo = np.finfo(dtype)
     nbits, nmant = finfo.bits, finfo.nmant
     uint = np.dtype(f"uint{nbits}")
-    b = bits(key, shape, nbits, offset)
     one = np.array(1.0, dtype)
-    floats = lax.bitcast_convert_type((b >> uint.type(nbits - nmant)) | one.view(uint), dtype) - one
+    b = bits(key, shape, nbits, offset)
+    return lax.bitcast_convert_type((b >> uint.type(nbits - nmant)) | one.view(uint), dtype) - one
+
+
+def standard_normal(key, shape, dtype=jnp.float32, offset=0):
+    """The values of ``jax.random.normal(key, shape, dtype)``, dtype float32 or float64
+    (``offset``: as in ``bits``)."""
+    dtype = np.dtype(dtype)
+    one = np.array(1.0, dtype)
+    floats = uniform(key, shape, dtype, offset)
     lo = np.nextafter(np.array(-1.0, dtype), np.array(0.0, dtype), dtype=dtype)
     u = lax.max(lo, floats * (one - lo) + lo)
     return np.array(np.sqrt(2), dtype) * lax.erf_inv(u)
-
-
-def uniform(key, shape, offset=0):
-    """The values of ``jax.random.uniform(key, shape, float32)``: [0, 1) (``offset``: as in ``bits``)."""
-    b = bits(key, shape, 32, offset)
-    one = np.array(1.0, np.float32)
-    return lax.bitcast_convert_type((b >> np.uint32(9)) | one.view(np.uint32), np.float32) - one
 
 
 def normal(key, shape, dtype=jnp.float32, offset=0):

@@ -115,9 +115,7 @@ def masked_kalman_update(x, P, nu, H, R, used):
     return x, P, nu, S
 
 
-def wrap_angle(a):
-    """Wrap to (-π, π]."""
-    return wrap(a)
+wrap_angle = wrap  # wrap to (-π, π]
 
 
 def wrap_components(nu, angle_mask):

@@ -65,6 +65,13 @@ def wrap(a):
     return a + 2.0 * jnp.pi * jnp.floor((jnp.pi - a) / (2.0 * jnp.pi))
 
 
+def measure_whole(sensor, key, pos):
+    """A sensor's (or suite's) measurements of a whole position sequence (T, dim) -> (T, m):
+    ``measure_step`` at every step, on that step's row of ``draws``."""
+    T = pos.shape[0]
+    return jax.vmap(lambda d, k, p: sensor.measure_step(d, k, T, p))(sensor.draws(key, T), jnp.arange(T), pos)
+
+
 def epochs(steps: int, dt: float, period: float, offset: float) -> np.ndarray:
     """Boolean mask over steps k = 1 … steps: does a sensor report at t_k = k·dt?"""
     t = dt * np.arange(1, steps + 1)
@@ -116,7 +123,7 @@ class Sensor:
         """One run's draws, float32: standard-normal noise (steps, m) and, when the sensor can
         miss, uniforms (steps,) that decide its detections."""
         k_noise, k_det = jax.random.split(key)
-        u = random.uniform(k_det, (steps,)) if self.p_detect < 1.0 else None
+        u = random.uniform(k_det, (steps,)) if self.p_detect < 1.0 else None  # float32
         return random.normal(k_noise, (steps, self.m)), u
 
     def measure_step(self, draws_k, k, steps, p):
@@ -132,8 +139,7 @@ class Sensor:
 
     def measure(self, key, pos):
         """Noisy measurements of a position sequence ``pos`` (T, dim) -> (T, m)."""
-        T = pos.shape[0]
-        return jax.vmap(lambda d, k, p: self.measure_step(d, k, T, p))(self.draws(key, T), jnp.arange(T), pos)
+        return measure_whole(self, key, pos)
 
     def information(self, p):
         """Expected Fisher information of one report about the position: Pd·Hᵀ R⁻¹ H."""
@@ -202,8 +208,7 @@ class SensorSuite:
         return jnp.concatenate([s.measure_step(d, k, steps, p) for s, d in zip(self.sensors, draws_k)], axis=-1)
 
     def measure(self, key, pos):
-        T = pos.shape[0]
-        return jax.vmap(lambda d, k, p: self.measure_step(d, k, T, p))(self.draws(key, T), jnp.arange(T), pos)
+        return measure_whole(self, key, pos)
 
     def information(self, pos):
         """Per-step expected position information (T, dim, dim), only at report epochs."""
