@@ -34,7 +34,7 @@ import numpy as np
 
 from tracklab import random
 from tracklab.filters.core import Filter, Meas, Prior
-from tracklab.linalg import mahalanobis2, mahalanobis2_logdet, norm, sum_elements
+from tracklab.linalg import elementwise_products, mahalanobis2, mahalanobis2_logdet, norm, sum_elements
 from tracklab.models import Kinematic
 from tracklab.sensors import SensorSuite
 
@@ -138,8 +138,8 @@ def _lane(spec: FilterSpec, params, P0_cv, pattern, detect_all, windows, dtype) 
             state, out = flt.step(params, state, meas)
         else:  # no sensor reports at this step (between reports): predict only
             state, out = jax.lax.cond(reports_k, flt.step, coast, params, state, meas)
-        e = out.x[pv] - truth_k  # (2d,) CV layout
-        Pe = out.P[pv[:, None], pv[None, :]]
+        e = jnp.stack([out.x[i] for i in pv]) - truth_k  # (2d,) CV layout
+        Pe = jnp.stack([jnp.stack([out.P[i, j] for j in pv]) for i in pv])
         nees = mahalanobis2(Pe, e)  # NaN when P is not positive definite
         nis, logdet_s = mahalanobis2_logdet(out.S, out.nu)
         nis = jnp.where(out.valid, nis, 0.0)
@@ -267,12 +267,14 @@ def _streams(scenario, specs) -> bool:
     return truth_ok and all(s.view is None or getattr(s.view, "rowwise", False) for s in specs)
 
 
-def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, windows=None):
+def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, windows=None, elementwise=True):
     """The jitted per-chunk computation: (params_list, key, idx, live[, exclude]) -> sums.
 
     ``windows``: name -> (steps,) bool mask, the report windows of the one-step
     prediction error's per-run maxima. ``exclude`` (filters, B) bool: runs left out
-    of each filter's sums (none if not given).
+    of each filter's sums (none if not given). ``elementwise``: write the small matrix
+    products of filters whose state is carried per run element by element
+    (``linalg.elementwise_products``: faster to run, slower to compile and to differentiate).
 
     One ``lax.scan`` over the steps carries every run's truth and every filter's
     state; at each step it draws the runs' measurements, steps every filter
@@ -322,7 +324,7 @@ def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, wind
             z_views = [z_all if ln.spec.view is None else jax.vmap(ln.spec.view, in_axes=1, out_axes=1)(z_all)
                        for ln in lanes]
         truth_batched = scenario.per_run or not stream
-        steps, carries = [], []
+        steps, carries, per_run_state = [], [], []
         for ln in lanes:
             fixed = (t, ln.present, jnp.asarray(ln.reports))
             m_f = ln.pattern.shape[1]
@@ -333,6 +335,8 @@ def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, wind
             else:
                 shared = [False] * treedef.num_leaves
             axes = jax.tree_util.tree_unflatten(treedef, [None if s else 0 for s in shared])
+            # products element by element where the filter's state is carried per run (linalg.elementwise_products)
+            per_run_state.append(elementwise and not all(shared))
             # per-run outputs with runs last: each quantity a contiguous vector over the runs
             steps.append(jax.vmap(ln.body, in_axes=(axes, (0, 0 if truth_batched else None, None, None, None)),
                                   out_axes=(axes, -1)))
@@ -381,7 +385,8 @@ def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, wind
                 out[ln.spec.label], bad_any, runmax = lane_stats(i, pending, bad_any, runmax)
                 present_k, reports_k, w_k = lane_in[i]
                 z_f = zv_k[i] if not stream else (z_k if ln.spec.view is None else ln.spec.view(z_k))
-                state, per_run = step(state, (z_f, truth_k, t_k, present_k, reports_k))
+                with elementwise_products(per_run_state[i]):
+                    state, per_run = step(state, (z_f, truth_k, t_k, present_k, reports_k))
                 x_first = per_run[0][:, 0] + (truth_k[0] if truth_batched else truth_k)  # run 0's estimate
                 new_carries.append((state, (per_run, w_k, x_first), bad_any, runmax))
             return (truth_k if (stream and scenario.per_run) else None, new_carries), out

@@ -18,6 +18,8 @@ plain keys; another window's carry its name: ``pred_err_max[60-90 s]``.
 
 from __future__ import annotations
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import gammainc
 
@@ -25,14 +27,32 @@ AXES = ("x", "y", "z")
 
 
 def chi2_quantile(p, dof):
-    """Quantile of the χ² distribution (bisection on the regularised gamma)."""
+    """Quantile of the χ² distribution (bisection on the regularised gamma).
+
+    The bisection runs once per distinct (p, dof) pair, compiled: a series of
+    thousands of steps usually has a handful of distinct degrees of freedom.
+    """
     p, dof = np.broadcast_arrays(np.asarray(p, float), np.asarray(dof, float))
-    lo = np.zeros_like(dof)
-    hi = np.maximum(dof + 20.0 * np.sqrt(2.0 * np.maximum(dof, 1.0)) + 50.0, 1.0)
-    for _ in range(200):
+    pairs, inverse = np.unique(np.stack([p.ravel(), dof.ravel()], axis=1), axis=0, return_inverse=True)
+    n = max(1, 1 << (len(pairs) - 1).bit_length())  # padded to a power of two: few distinct compiles
+    padded = np.concatenate([pairs, np.repeat(pairs[-1:], n - len(pairs), axis=0)])
+    with jax.enable_x64(True):
+        q = np.asarray(_chi2_bisection(padded[:, 0], padded[:, 1]))
+    return q[: len(pairs)][inverse.ravel()].reshape(p.shape)
+
+
+@jax.jit
+def _chi2_bisection(p, dof):
+    lo = jnp.zeros_like(dof)
+    hi = jnp.maximum(dof + 20.0 * jnp.sqrt(2.0 * jnp.maximum(dof, 1.0)) + 50.0, 1.0)
+
+    def halve(_, bounds):
+        lo, hi = bounds
         mid = 0.5 * (lo + hi)
-        below = np.asarray(gammainc(dof / 2.0, mid / 2.0)) < p
-        lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+        below = gammainc(dof / 2.0, mid / 2.0) < p
+        return jnp.where(below, mid, lo), jnp.where(below, hi, mid)
+
+    lo, hi = jax.lax.fori_loop(0, 200, halve, (lo, hi))
     return 0.5 * (lo + hi)
 
 

@@ -132,7 +132,8 @@ def objective(exp, names, loss="mse_pos", labels=None) -> Objective:
     chosen = selection(exp, names, labels)
     if not chosen:
         raise ValueError(f"no filter has any of the parameters {', '.join(names)}")
-    fn = make_chunk_fn(exp.scenario, exp.sensor, specs, exp.prior_covariance(), exp.dt)
+    # products as outer-product sums: element by element, the gradient compiles slowly
+    fn = make_chunk_fn(exp.scenario, exp.sensor, specs, exp.prior_covariance(), exp.dt, elementwise=False)
     base = [s.filter.params for s in specs]
     labels_all = [s.label for s in specs]
     theta0 = {l: encode(base[labels_all.index(l)], ns) for l, ns in chosen.items()}

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab.filters.core import Filter, Out, masked_kalman_update, masked_meas, symmetrise, wrap_components
-from tracklab.linalg import mahalanobis2_logdet, mm
+from tracklab.linalg import jacobian, mahalanobis2_logdet, mm
 
 IMM_MODELS = ("cv", "ca", "ct")
 
@@ -116,11 +116,11 @@ def model_imm(dim: int, dt: float, sensor, params, kinds=("cv", "ca", "ct"), tur
         P0 = jnp.einsum("ij,inm->jnm", w, s.P) + jnp.einsum("ij,ijn,ijm->jnm", w, d, d)
         xs, Ps, preds, nus, Ss, lls = [], [], [], [], [], []
         for j, f in enumerate(fs):  # static loop over the models (r ≤ 3)
-            F = jax.jacfwd(f)(x0[j])
+            F = jacobian(f, x0[j])
             Q = (Gs[j] * p["q"][j]) @ Gs[j].T + p["q_turn"] * e_w
             xp = f(x0[j])
             Pp = symmetrise(mm(mm(F, P0[j]), F.T) + Q)
-            H = jax.jacfwd(h)(xp)
+            H = jacobian(h, xp)
             nu = wrap_components(z - h(xp), sensor.angle_mask)
             x, P, nu, S = masked_kalman_update(xp, Pp, nu, H, jnp.diag(p["r"]), present)
             d2, logdet = mahalanobis2_logdet(S, nu)

@@ -27,7 +27,7 @@ from tracklab.filters.core import (
     symmetrise,
     wrap_components,
 )
-from tracklab.linalg import mm
+from tracklab.linalg import jacobian, mm
 from tracklab.sensors import CONVERSIONS
 
 
@@ -98,11 +98,11 @@ def ekf(f, h, Q, R, *, angle_mask=None) -> Filter:
     params = {"Q": jnp.asarray(Q), "R": jnp.asarray(R)}
 
     def predict(p, g):
-        F = jax.jacfwd(f)(g.x)
+        F = jacobian(f, g.x)
         return Gaussian(f(g.x), symmetrise(mm(mm(F, g.P), F.T) + p["Q"]))
 
     def update(p, g, z, present):
-        H = jax.jacfwd(h)(g.x)
+        H = jacobian(h, g.x)
         nu = wrap_components(z - h(g.x), angle_mask)
         x, P, nu, S = masked_kalman_update(g.x, g.P, nu, H, p["R"], present)
         return Gaussian(x, P), nu, S, present
@@ -150,7 +150,7 @@ def model_ekf(model, sensor, params) -> Filter:
     h = _h_state(model, sensor)
 
     def update(p, g, z, present):
-        H = jax.jacfwd(h)(g.x)
+        H = jacobian(h, g.x)
         nu = wrap_components(z - h(g.x), sensor.angle_mask)
         x, P, nu, S = masked_kalman_update(g.x, g.P, nu, H, jnp.diag(p["r"]), present)
         return Gaussian(x, P), nu, S, present

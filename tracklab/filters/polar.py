@@ -10,12 +10,11 @@ Jacobian of the polar→Cartesian map).
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 
 from tracklab.filters.core import Gaussian, Prior, masked_kalman_update, symmetrise, wrap_angle
 from tracklab.filters.kalman import gaussian_filter
-from tracklab.linalg import mm
+from tracklab.linalg import jacobian, mm
 
 
 def polar_to_cartesian(s):
@@ -36,7 +35,7 @@ def model_polar_kf(dt, sensor, params):
     H = jnp.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0]])
 
     def init(p, prior: Prior):
-        J = jax.jacfwd(cartesian_to_polar)(prior.x)
+        J = jacobian(cartesian_to_polar, prior.x)
         P = symmetrise(J @ prior.P @ J.T)
         P = P.at[:2, 2:].set(0.0).at[2:, :2].set(0.0)  # decoupled channels
         return Gaussian(cartesian_to_polar(prior.x), P)
@@ -58,7 +57,7 @@ def model_polar_kf(dt, sensor, params):
         return Gaussian(x, P), nu, S, present
 
     def report(g):
-        J = jax.jacfwd(polar_to_cartesian)(g.x)
+        J = jacobian(polar_to_cartesian, g.x)
         return polar_to_cartesian(g.x), symmetrise(mm(mm(J, g.P), J.T))
 
     return gaussian_filter(params, predict, update, report=report, init=init)

@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 
 from tracklab.filters.core import Filter, Out, masked_kalman_update, masked_meas, symmetrise, wrap_components
-from tracklab.linalg import mm
+from tracklab.linalg import jacobian, mm
 
 
 class StfState(NamedTuple):
@@ -46,14 +46,14 @@ def _stf(f, h, Q_of, R_of, angle_mask, params) -> Filter:
         return StfState(x, jnp.asarray(prior.P), jnp.zeros((m,), x.dtype), jnp.zeros((m,), bool))
 
     def predict_parts(p, s):
-        F = jax.jacfwd(f)(s.x)
+        F = jacobian(f, s.x)
         return f(s.x), symmetrise(mm(mm(F, s.P), F.T)), Q_of(p)
 
     def step(p, s, meas):
         z, present = masked_meas(meas)
         x_pred, FPF, Q = predict_parts(p, s)
         R = R_of(p)
-        H = jax.jacfwd(h)(x_pred)
+        H = jacobian(h, x_pred)
         gamma = wrap_components(z - h(x_pred), angle_mask)
         g2 = jnp.where(present, gamma**2, 0.0)
         v = jnp.where(present, jnp.where(s.seen, (p["rho"] * s.v + g2) / (1.0 + p["rho"]), g2), s.v)

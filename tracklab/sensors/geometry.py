@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab import random
+from tracklab.linalg import jacobian
 
 
 def polar_h(p):
@@ -143,7 +144,7 @@ class Sensor:
 
     def information(self, p):
         """Expected Fisher information of one report about the position: Pd·Hᵀ R⁻¹ H."""
-        H = jax.jacfwd(self.h)(p)
+        H = jacobian(self.h, p)
         return self.p_detect * (H.T / jnp.asarray(np.square(self.sigma), p.dtype)) @ H
 
 
