@@ -138,8 +138,8 @@ def _lane(spec: FilterSpec, params, P0_cv, pattern, detect_all, windows, dtype) 
             state, out = flt.step(params, state, meas)
         else:  # no sensor reports at this step (between reports): predict only
             state, out = jax.lax.cond(reports_k, flt.step, coast, params, state, meas)
-        e = jnp.stack([out.x[i] for i in pv]) - truth_k  # (2d,) CV layout
-        Pe = jnp.stack([jnp.stack([out.P[i, j] for j in pv]) for i in pv])
+        e = out.x[pv] - truth_k  # (2d,) CV layout
+        Pe = out.P[pv[:, None], pv[None, :]]
         nees = mahalanobis2(Pe, e)  # NaN when P is not positive definite
         nis, logdet_s = mahalanobis2_logdet(out.S, out.nu)
         nis = jnp.where(out.valid, nis, 0.0)
