@@ -89,6 +89,11 @@ def test_chi2_quantiles():
     np.testing.assert_allclose(chi2_quantile(0.95, 100), 124.3421, rtol=1e-5)
     lo, hi = average_chi2_interval(4, 10000)
     assert lo < 4 < hi and hi - lo < 0.25
+    # a series with repeated (p, dof) pairs: each element as if asked alone
+    p = np.array([0.025, 0.975, 0.025, 0.5, 0.975])
+    dof = np.array([4.0, 1.0, 4.0, 7.0, 1.0])
+    np.testing.assert_allclose(chi2_quantile(p, dof), [chi2_quantile(a, b) for a, b in zip(p, dof)], rtol=1e-12)
+    np.testing.assert_allclose(chi2_quantile(0.5, 7.0), 6.345811, rtol=1e-5)
 
 
 def test_linear_gaussian_nees_and_pcrlb(tmp_path):
