@@ -18,7 +18,7 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from tracklab.linalg import elements, elementwise, from_elements, mm, spd_inverse
+from tracklab.linalg import mm, spd_inverse, symmetrise
 from tracklab.sensors.geometry import wrap
 
 
@@ -83,16 +83,6 @@ class Gaussian(NamedTuple):
 
     x: jax.Array
     P: jax.Array
-
-
-def symmetrise(P):
-    """(P + Pᵀ)/2 (element by element up to 4 × 4 within ``linalg.elementwise_products``)."""
-    if not elementwise() or P.ndim != 2 or P.shape[-1] > 4:
-        return 0.5 * (P + jnp.swapaxes(P, -1, -2))
-    e = elements(P)
-    n = len(e)
-    return from_elements([[e[i][i] if i == j else 0.5 * (e[i][j] + e[j][i]) for j in range(n)] for i in range(n)],
-                         P.dtype)
 
 
 def kalman_update(x, P, nu, H, R):
