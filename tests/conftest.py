@@ -1,9 +1,49 @@
-"""The suite runs on one CPU device per worker process (``pytest -n 2`` already keeps both
-cores busy), where ``import tracklab`` alone would make one per core: splitting each chunk
-over devices costs compile time and no test needs it, except the device-count test, which
-starts its own processes with 1, 2 and 4 devices."""
+"""Test-session settings.
+
+One CPU device per worker process: ``pytest -n 2`` already keeps both cores busy, where
+``import tracklab`` alone would make one device per core; splitting each chunk over
+devices costs compile time and no test needs it, except the device-count test, which
+starts its own processes with 2 and 4 devices.
+
+One persistent compilation cache for the whole session, in a fresh temporary folder
+shared by the workers and every subprocess the tests start (the CLI's included): the
+suite's time is mostly XLA compiling, and tests that build the same program (the same
+experiment at the same chunk size, the CLI run on the same file, a sweep point run again
+on its own) compile it once. Nothing is read from or written to the user's own cache.
+"""
 
 import os
+import shutil
+import tempfile
+
+import pytest
 
 if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=1").strip()
+
+_CACHE_KEY = "tracklab_jax_cache"
+
+
+def _use_cache(folder):
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = folder
+    os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0.5"
+
+
+def pytest_configure(config):
+    worker = getattr(config, "workerinput", None)
+    if worker is not None and _CACHE_KEY in worker:  # an xdist worker: the controller's folder
+        _use_cache(worker[_CACHE_KEY])
+        return
+    config._tracklab_cache = tempfile.mkdtemp(prefix="tracklab-tests-jax-cache-")
+    _use_cache(config._tracklab_cache)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_configure_node(node):  # pytest-xdist: hand the folder to each worker
+    node.workerinput[_CACHE_KEY] = node.config._tracklab_cache
+
+
+def pytest_unconfigure(config):
+    folder = getattr(config, "_tracklab_cache", None)
+    if folder:
+        shutil.rmtree(folder, ignore_errors=True)

@@ -49,23 +49,6 @@ SERIES_KEYS = ("rmse_pos", "rmse_vel", "max_err_pos", "nees")
 PNGS = ("rmse.png", "mean_error.png", "nees.png")
 
 
-_ENV: dict | None = None  # the subprocesses' environment, set by the fixture below
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _compilation_cache(tmp_path_factory):
-    """Share JAX's persistent compilation cache between this module's runs (same program -> ~2 s, not ~6 s)."""
-    global _ENV
-    _ENV = dict(
-        os.environ,
-        JAX_COMPILATION_CACHE_DIR=str(tmp_path_factory.mktemp("jax-cache")),
-        JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
-        JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0",
-    )
-    yield
-    _ENV = None
-
-
 def _command():
     script = Path(sys.executable).parent / "tracklab"
     if script.is_file() and os.access(script, os.X_OK):
@@ -74,13 +57,13 @@ def _command():
 
 
 def tracklab(*args, cwd, timeout=300):
-    return subprocess.run([*_command(), *map(str, args)], cwd=cwd, env=_ENV, capture_output=True, text=True,
+    return subprocess.run([*_command(), *map(str, args)], cwd=cwd, capture_output=True, text=True,
                           timeout=timeout)
 
 
 def tracklab_parallel(arg_lists, *, cwd, timeout=300):
     procs = [
-        subprocess.Popen([*_command(), *map(str, args)], cwd=cwd, env=_ENV, text=True,
+        subprocess.Popen([*_command(), *map(str, args)], cwd=cwd, text=True,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE)
         for args in arg_lists
     ]
@@ -374,7 +357,7 @@ def test_interrupted_run_leaves_previous_results_intact(tmp_path):
     # a terminal's Ctrl-C reaches a process whose SIGINT is at its default; a test worker (or any
     # background job) may hand its children an ignored SIGINT, so restore the default in the child
     proc = subprocess.Popen([*_command(), "run", "small.toml", "--runs", "100000000", "--out", "out", "--no-figures"],
-                            cwd=tmp_path, env=_ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     time.sleep(8)  # importing, validating, compiling, first chunks
     proc.send_signal(signal.SIGINT)
