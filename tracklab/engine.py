@@ -153,8 +153,17 @@ def _lane(spec: FilterSpec, params, P0_cv, pattern, detect_all, windows, dtype) 
     return _Lane(spec, init, body, pattern, present, reports, names, wmask)
 
 
+# a step's sums over the runs and maxima over the runs, each one vector per filter inside the
+# scan (one reduction each, one output each), cut into the named quantities after it
+_SUMS = ("count", "sum_pos", "sum_vel", "sumsq_pos", "sumsq_vel", "sum_nees", "sum_nis", "count_nis", "dof_nis",
+         "sum_logdet_s", "sum_pred", "sumsq_pred")
+_MAXIMA = ("max_abs_pos", "max_abs_vel", "max_err_pos", "max_err_vel")
+_PER_RUN_SCALARS = {"count", "sum_nees", "sum_nis", "count_nis", "dof_nis", "sum_logdet_s", "max_err_pos", "max_err_vel"}
+
+
 def _lane_sums(e, nees, nis, upd, dof, bad, logdet_s, e_pred, ok, runmax, w_k, dtype):
-    """One step's sums over the runs ``ok`` (B,) of one filter's per-run errors (runs last)."""
+    """One step's sums over the runs ``ok`` (B,) of one filter's per-run errors (runs last): the
+    vectors of ``_SUMS`` and of ``_MAXIMA`` (see ``_named``), and the updated per-run maxima."""
     okf = ok.astype(dtype)
     e = jnp.where(ok, e, 0.0)  # (2d, B)
     ep, ev = e[0::2], e[1::2]
@@ -183,21 +192,21 @@ def _lane_sums(e, nees, nis, upd, dof, bad, logdet_s, e_pred, ok, runmax, w_k, d
         "max_err_pos": norm(ep)[None],
         "max_err_vel": norm(ev)[None],
     }
-    sums = _split(jnp.sum(jnp.concatenate(list(add.values())), axis=-1), add)
-    sums |= _split(jnp.max(jnp.where(ok, jnp.concatenate(list(top.values())), -jnp.inf), axis=-1), top)
-    return sums, runmax
+    assert tuple(add) == _SUMS and tuple(top) == _MAXIMA
+    sums = jnp.sum(jnp.concatenate(list(add.values())), axis=-1)
+    maxima = jnp.max(jnp.where(ok, jnp.concatenate(list(top.values())), -jnp.inf), axis=-1)
+    return sums, maxima, runmax
 
 
-_PER_RUN_SCALARS = {"count", "sum_nees", "sum_nis", "count_nis", "dof_nis", "sum_logdet_s", "max_err_pos", "max_err_vel"}
-
-
-def _split(v, parts):
-    """Cut a vector into the named parts' lengths (the per-run scalars' parts become scalars)."""
+def _named(v, names, d):
+    """Vectors (..., width) of ``_lane_sums`` cut into the named quantities along the last axis
+    (a per-run scalar's sum one column, the others d columns)."""
     out, i = {}, 0
-    for name, a in parts.items():
-        w = a.shape[0]
-        out[name] = v[i] if name in _PER_RUN_SCALARS else v[i:i + w]
-        i += w
+    for name in names:
+        if name in _PER_RUN_SCALARS:
+            out[name], i = v[..., i], i + 1
+        else:
+            out[name], i = v[..., i:i + d], i + d
     return out
 
 
@@ -268,7 +277,9 @@ def _streams(scenario, specs) -> bool:
 
 
 def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, windows=None, elementwise=True):
-    """The jitted per-chunk computation: (params_list, key, idx, live[, exclude]) -> sums.
+    """The compiled per-chunk computation: (params_list, key, idx, live[, exclude]) -> sums
+    (per filter label, the named per-step sums; NumPy arrays when called outside a trace,
+    traced arrays inside one, e.g. under ``jax.grad``; ``.lower`` is the jitted function's).
 
     ``windows``: name -> (steps,) bool mask, the report windows of the one-step
     prediction error's per-run maxima. ``exclude`` (filters, B) bool: runs left out
@@ -353,8 +364,8 @@ def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, wind
             per_run, w_k, x_first = pending
             bad_any = bad_any | per_run[5]
             ok = live & ~exclude[i] & ~bad_any
-            sums, runmax = _lane_sums(*per_run, ok, runmax, w_k, dtype)
-            return sums | {"example_x": x_first}, bad_any, runmax
+            sums, maxima, runmax = _lane_sums(*per_run, ok, runmax, w_k, dtype)
+            return (sums, maxima, x_first), bad_any, runmax
 
         def scan_step(carry, inp):
             truth_prev, lane_carries = carry
@@ -402,8 +413,8 @@ def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, wind
             out["_info"] = jnp.zeros((T, d, d), dtype)
         for i, (ln, (_, pending, bad_any, runmax)) in enumerate(zip(lanes, finals)):
             last, bad_any, runmax = lane_stats(i, pending, bad_any, runmax)  # the last step's sums
-            out[ln.spec.label] = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[1:], b[None]]),
-                                                         out[ln.spec.label], last)
+            sums, maxima, x_first = (jnp.concatenate([a[1:], b[None]]) for a, b in zip(out[ln.spec.label], last))
+            out[ln.spec.label] = {"sums": sums, "maxima": maxima, "example_x": x_first}  # cut by _unpack
             ok = live & ~exclude[i] & ~bad_any
             for j, name in enumerate(ln.names):  # sum over runs of each run's largest |error| (per axis, then norm)
                 out[ln.spec.label][f"runmax_pred@{name}"] = jnp.sum(jnp.where(ok, runmax[j], 0.0), axis=-1)
@@ -435,7 +446,28 @@ def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, wind
             exclude = jnp.concatenate([exclude, jnp.ones((len(specs), pad), bool)], axis=1)
         return _combine(per_device(params_list, key, idx, live, exclude), B)
 
-    return jax.jit(chunk)
+    jitted = jax.jit(chunk)
+
+    def chunk_fn(params_list, key, idx, live, exclude=None):
+        out = jitted(params_list, key, idx, live, exclude)
+        if not any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(out)):
+            out = jax.device_get(out)  # called eagerly: the results cut into their parts on the host
+        return _unpack(out, d)
+
+    chunk_fn.lower = jitted.lower
+    return chunk_fn
+
+
+def _unpack(out, d):
+    """Each filter's per-step sums and maxima as named arrays, from the two vectors per step that
+    the scan writes (``_lane_sums``); the leading axes (steps, grid points) are kept. Cut after
+    the compiled chunk, each part is not an output buffer and a kernel of its own."""
+    res = dict(out)
+    for label, v in out.items():
+        if isinstance(v, dict) and "sums" in v:
+            v = dict(v)
+            res[label] = _named(v.pop("sums"), _SUMS, d) | _named(v.pop("maxima"), _MAXIMA, d) | v
+    return res
 
 
 def _combine(out, B):
@@ -446,7 +478,7 @@ def _combine(out, B):
             return v[0]
         if name == "diverged_runs":
             return v.reshape(-1)[:B]
-        if name.startswith("max_"):
+        if name == "maxima":
             return jnp.max(v, axis=0)
         return jnp.sum(v, axis=0)
 
