@@ -147,10 +147,19 @@ def _lane(spec: FilterSpec, params, P0_cv, pattern, detect_all, windows, dtype) 
         e_pred = out.x_pred[pv[0::2]] - truth_k[0::2]  # one-step prediction error of the position
         bad = ~jnp.isfinite(nees + sum_elements(out.x))
         bad = bad | (out.valid & ~jnp.isfinite(nis))
-        return state, (e, nees, nis, out.valid, out.dof, bad, logdet_s, e_pred)
+        # fixed dtypes, so that the scan's carry is known without tracing the step (_no_step_yet)
+        f = lambda a: jnp.asarray(a, dtype)
+        return state, (f(e), f(nees), f(nis), jnp.asarray(out.valid, bool), f(out.dof), bad, f(logdet_s), f(e_pred))
 
     present = jnp.asarray(pattern) if detect_all else None
     return _Lane(spec, init, body, pattern, present, reports, names, wmask)
+
+
+def _no_step_yet(d, B, dtype):
+    """Zeros in the place of the per-run errors of ``_Lane.body`` (runs last) before the first step."""
+    z = lambda *shape: jnp.zeros(shape + (B,), dtype)
+    no = jnp.zeros((B,), bool)
+    return z(2 * d), z(), z(), no, z(), no, z(), z(d)
 
 
 # a step's sums over the runs and maxima over the runs, each one vector per filter inside the
@@ -352,12 +361,7 @@ def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, wind
             steps.append(jax.vmap(ln.body, in_axes=(axes, (0, 0 if truth_batched else None, None, None, None)),
                                   out_axes=(axes, -1)))
             state0 = jax.vmap(ln.init, out_axes=axes)(prior)
-            shapes = jax.eval_shape(steps[-1], state0, (jnp.zeros((B, m_f), dtype),
-                                                        jnp.zeros((B, 2 * d) if truth_batched else (2 * d,), dtype),
-                                                        t[0], None if ln.present is None else ln.present[0],
-                                                        jnp.asarray(ln.reports)[0]))[1]
-            nothing = (jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes),  # no step yet
-                       jnp.zeros((len(ln.names),), bool), jnp.zeros((2 * d,), dtype))
+            nothing = (_no_step_yet(d, B, dtype), jnp.zeros((len(ln.names),), bool), jnp.zeros((2 * d,), dtype))
             carries.append((state0, nothing, jnp.zeros((B,), bool), jnp.zeros((len(ln.names), d + 1, B), dtype)))
 
         def lane_stats(i, pending, bad_any, runmax):
