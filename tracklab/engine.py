@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, NamedTuple, Sequence
 
 import jax
 import jax.extend
@@ -98,6 +98,26 @@ def _run_keys(key, idx):
     return split[:, 0], split[:, 1], split[:, 2]
 
 
+class _RunErrors(NamedTuple):
+    """One filter's errors at one step, per run (under ``vmap`` with runs last: (…, runs))."""
+
+    e: Any  # (2d,) estimate minus truth, CV layout
+    nees: Any
+    nis: Any  # 0 where no update
+    valid: Any  # bool: an update happened
+    dof: Any  # innovation components used
+    bad: Any  # bool: NaN/inf estimate, NEES or NIS
+    logdet_s: Any  # log det S, 0 where no update
+    e_pred: Any  # (d,) one-step position prediction error
+
+    @classmethod
+    def zeros(cls, d, B, dtype):
+        """In the place of the errors before the first step (the scan's first carry)."""
+        z = lambda *shape: jnp.zeros(shape + (B,), dtype)
+        no = jnp.zeros((B,), bool)
+        return cls(z(2 * d), z(), z(), no, z(), no, z(), z(d))
+
+
 @dataclass(frozen=True)
 class _Lane:
     """One filter inside a chunk's scan: its vmapped step and how its state is batched."""
@@ -147,19 +167,13 @@ def _lane(spec: FilterSpec, params, P0_cv, pattern, detect_all, windows, dtype) 
         e_pred = out.x_pred[pv[0::2]] - truth_k[0::2]  # one-step prediction error of the position
         bad = ~jnp.isfinite(nees + sum_elements(out.x))
         bad = bad | (out.valid & ~jnp.isfinite(nis))
-        # fixed dtypes, so that the scan's carry is known without tracing the step (_no_step_yet)
+        # fixed dtypes, so that the scan's carry is known without tracing the step (_RunErrors.zeros)
         f = lambda a: jnp.asarray(a, dtype)
-        return state, (f(e), f(nees), f(nis), jnp.asarray(out.valid, bool), f(out.dof), bad, f(logdet_s), f(e_pred))
+        return state, _RunErrors(f(e), f(nees), f(nis), jnp.asarray(out.valid, bool), f(out.dof), bad, f(logdet_s),
+                                f(e_pred))
 
     present = jnp.asarray(pattern) if detect_all else None
     return _Lane(spec, init, body, pattern, present, reports, names, wmask)
-
-
-def _no_step_yet(d, B, dtype):
-    """Zeros in the place of the per-run errors of ``_Lane.body`` (runs last) before the first step."""
-    z = lambda *shape: jnp.zeros(shape + (B,), dtype)
-    no = jnp.zeros((B,), bool)
-    return z(2 * d), z(), z(), no, z(), no, z(), z(d)
 
 
 # a step's sums over the runs and maxima over the runs, each one vector per filter inside the
@@ -170,14 +184,14 @@ _MAXIMA = ("max_abs_pos", "max_abs_vel", "max_err_pos", "max_err_vel")
 _PER_RUN_SCALARS = {"count", "sum_nees", "sum_nis", "count_nis", "dof_nis", "sum_logdet_s", "max_err_pos", "max_err_vel"}
 
 
-def _lane_sums(e, nees, nis, upd, dof, bad, logdet_s, e_pred, ok, runmax, w_k, dtype):
+def _lane_sums(r: _RunErrors, ok, runmax, w_k, dtype):
     """One step's sums over the runs ``ok`` (B,) of one filter's per-run errors (runs last): the
     vectors of ``_SUMS`` and of ``_MAXIMA`` (see ``_named``), and the updated per-run maxima."""
     okf = ok.astype(dtype)
-    e = jnp.where(ok, e, 0.0)  # (2d, B)
+    e = jnp.where(ok, r.e, 0.0)  # (2d, B)
     ep, ev = e[0::2], e[1::2]
-    e_pred = jnp.where(ok, e_pred, 0.0)  # (d, B)
-    updf = (upd & ok).astype(dtype)
+    e_pred = jnp.where(ok, r.e_pred, 0.0)  # (d, B)
+    updf = (r.valid & ok).astype(dtype)
     a_pred = jnp.concatenate([jnp.abs(e_pred), norm(e_pred)[None]])  # (d + 1, B)
     runmax = jnp.where(w_k[:, None, None], jnp.maximum(runmax, a_pred[None]), runmax)
     # one reduction for all sums and one for all maxima (each reduction is a kernel per step)
@@ -187,11 +201,11 @@ def _lane_sums(e, nees, nis, upd, dof, bad, logdet_s, e_pred, ok, runmax, w_k, d
         "sum_vel": ev,
         "sumsq_pos": ep**2,
         "sumsq_vel": ev**2,
-        "sum_nees": jnp.where(ok, nees, 0.0)[None],
-        "sum_nis": (jnp.where(ok, nis, 0.0) * updf)[None],
+        "sum_nees": jnp.where(ok, r.nees, 0.0)[None],
+        "sum_nis": (jnp.where(ok, r.nis, 0.0) * updf)[None],
         "count_nis": updf[None],
-        "dof_nis": (dof * updf)[None],
-        "sum_logdet_s": (jnp.where(ok, logdet_s, 0.0) * updf)[None],
+        "dof_nis": (r.dof * updf)[None],
+        "sum_logdet_s": (jnp.where(ok, r.logdet_s, 0.0) * updf)[None],
         "sum_pred": e_pred,  # one-step prediction error, per axis
         "sumsq_pred": e_pred**2,
     }
@@ -201,9 +215,8 @@ def _lane_sums(e, nees, nis, upd, dof, bad, logdet_s, e_pred, ok, runmax, w_k, d
         "max_err_pos": norm(ep)[None],
         "max_err_vel": norm(ev)[None],
     }
-    assert tuple(add) == _SUMS and tuple(top) == _MAXIMA
-    sums = jnp.sum(jnp.concatenate(list(add.values())), axis=-1)
-    maxima = jnp.max(jnp.where(ok, jnp.concatenate(list(top.values())), -jnp.inf), axis=-1)
+    sums = jnp.sum(jnp.concatenate([add[n] for n in _SUMS]), axis=-1)
+    maxima = jnp.max(jnp.where(ok, jnp.concatenate([top[n] for n in _MAXIMA]), -jnp.inf), axis=-1)
     return sums, maxima, runmax
 
 
@@ -361,14 +374,14 @@ def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, wind
             steps.append(jax.vmap(ln.body, in_axes=(axes, (0, 0 if truth_batched else None, None, None, None)),
                                   out_axes=(axes, -1)))
             state0 = jax.vmap(ln.init, out_axes=axes)(prior)
-            nothing = (_no_step_yet(d, B, dtype), jnp.zeros((len(ln.names),), bool), jnp.zeros((2 * d,), dtype))
+            nothing = (_RunErrors.zeros(d, B, dtype), jnp.zeros((len(ln.names),), bool), jnp.zeros((2 * d,), dtype))
             carries.append((state0, nothing, jnp.zeros((B,), bool), jnp.zeros((len(ln.names), d + 1, B), dtype)))
 
         def lane_stats(i, pending, bad_any, runmax):
             per_run, w_k, x_first = pending
-            bad_any = bad_any | per_run[5]
+            bad_any = bad_any | per_run.bad
             ok = live & ~exclude[i] & ~bad_any
-            sums, maxima, runmax = _lane_sums(*per_run, ok, runmax, w_k, dtype)
+            sums, maxima, runmax = _lane_sums(per_run, ok, runmax, w_k, dtype)
             return (sums, maxima, x_first), bad_any, runmax
 
         def scan_step(carry, inp):
@@ -402,7 +415,7 @@ def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, wind
                 z_f = zv_k[i] if not stream else (z_k if ln.spec.view is None else ln.spec.view(z_k))
                 with elementwise_products(per_run_state[i]):
                     state, per_run = step(state, (z_f, truth_k, t_k, present_k, reports_k))
-                x_first = per_run[0][:, 0] + (truth_k[0] if truth_batched else truth_k)  # run 0's estimate
+                x_first = per_run.e[:, 0] + (truth_k[0] if truth_batched else truth_k)  # run 0's estimate
                 new_carries.append((state, (per_run, w_k, x_first), bad_any, runmax))
             return (truth_k if (stream and scenario.per_run) else None, new_carries), out
 
@@ -547,7 +560,7 @@ def _monte_carlo(scenario, sensor, specs, runs, key, P0_cv, chunk, params, progr
         live = idx < runs
         idx_j, live_j = jnp.asarray(idx), jnp.asarray(live)
         t0 = time.perf_counter()
-        out = jax.device_get(fn(params_list, key, idx_j, live_j))
+        out = fn(params_list, key, idx_j, live_j)
         if c == 0:
             compile_s = time.perf_counter() - t0
         out = rerun_without_diverged(fn, out, [s.label for s in specs], params_list, key, idx_j, live_j)
@@ -592,7 +605,7 @@ def rerun_without_diverged(fn, out, labels, params_list, key, idx, live):
     if not masks.any():
         return out
     exclude = jnp.asarray(masks)
-    out = jax.device_get(fn(params_list, key, idx, live, exclude))
+    out = fn(params_list, key, idx, live, exclude)
     for label in labels:
         out[label].pop("diverged_runs")
     return out
