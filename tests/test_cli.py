@@ -353,7 +353,8 @@ def test_interrupted_run_leaves_previous_results_intact(tmp_path):
     (tmp_path / "small.toml").write_text(VALID)
     out = tmp_path / "out"
     out.mkdir()
-    (out / "stats.json").write_text("previous")
+    previous = '{"tracklab_version": "0.1.0", "experiment": {}, "filters": {}}'  # a results folder of tracklab's
+    (out / "stats.json").write_text(previous)
     # a terminal's Ctrl-C reaches a process whose SIGINT is at its default; a test worker (or any
     # background job) may hand its children an ignored SIGINT, so restore the default in the child
     proc = subprocess.Popen([*_command(), "run", "small.toml", "--runs", "100000000", "--out", "out", "--no-figures"],
@@ -369,6 +370,6 @@ def test_interrupted_run_leaves_previous_results_intact(tmp_path):
             proc.communicate()
     assert proc.returncode == 130, err
     assert "Traceback" not in err and "interrupted" in err
-    assert (out / "stats.json").read_text() == "previous"
+    assert (out / "stats.json").read_text() == previous
     assert sorted(p.name for p in out.iterdir()) == ["stats.json"]
     assert leftovers(tmp_path) == []

@@ -31,6 +31,25 @@ def _seed(s):
     return v
 
 
+def _size(s):
+    from tracklab.memory import parse_size
+
+    try:
+        return parse_size(s)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(f"{s!r} {e}") from None
+
+
+def _tracking(exp, command):
+    """Refuse, in one line, an airborne or servo file for a command that needs [[filter]] tables."""
+    from tracklab.config import Experiment
+
+    if not isinstance(exp, Experiment):
+        kind = "an [airborne]" if "airborne" in exp.raw else "a [servo]"
+        raise ConfigError(exp.path, "file", kind[kind.index("["):], f"tracklab {command} works on files with "
+                          f"[[filter]] tables; {kind} experiment is run with tracklab run")
+
+
 def cmd_run(args) -> int:
     from tracklab.config import MAX_RUNS, load_experiment
     from tracklab.report import markdown_table
@@ -46,7 +65,7 @@ def cmd_run(args) -> int:
             print(f"\r{exp.name}: {done}/{total} runs", end="\n" if done == total else "", file=sys.stderr, flush=True)
 
     doc = exp.run(runs=runs, seed=args.seed, out=out, progress=progress, figures=not args.no_figures,
-                  precision="float32" if args.float32 else None)
+                  precision="float32" if args.float32 else None, max_memory=args.max_memory)
     print(f"# {exp.name}: {runs} runs x {exp.steps} steps, window {exp.window[0]}-{exp.window[1]}, "
           f"{doc['wall_s']:.1f} s (compile {doc['compile_s']:.1f} s)")
     print(markdown_table(doc), end="")
@@ -91,6 +110,7 @@ def cmd_tune(args) -> int:
     from tracklab.tune import LOSSES, TUNABLE
 
     exp = load_experiment(args.experiment)
+    _tracking(exp, "tune")
     names = [n.strip() for n in args.params.split(",") if n.strip()]
     bad = [n for n in names if n not in TUNABLE]
     if not names or bad:
@@ -102,11 +122,24 @@ def cmd_tune(args) -> int:
     if not (args.lr > 0 and math.isfinite(args.lr)):
         raise ConfigError(args.experiment, "--lr", args.lr, "must be a finite number > 0")
     labels = [l.strip() for l in args.filters.split(",")] if args.filters else None
-    from tracklab.tune import selection
+    from tracklab.memory import check
+    from tracklab.output import check_tuned_file
+    from tracklab.tune import memory_bytes, selection, unwritable
 
-    if not selection(exp, names, labels):
+    known = [fc.label for fc in exp.filters]
+    if labels is not None and (not labels or any(l not in known for l in labels)):
+        raise ConfigError(args.experiment, "--filters", args.filters, f"must name filter labels from: {', '.join(known)}")
+    chosen = selection(exp, names, labels)
+    if not chosen:
         raise ConfigError(args.experiment, "--params", args.params, "no selected filter has any of these parameters")
+    why = unwritable(exp, chosen)
+    if why:
+        raise ConfigError(args.experiment, "--params", args.params, why)
     out = Path(args.out) if args.out else Path(args.experiment).with_name(Path(args.experiment).stem + "_tuned.toml")
+    check_tuned_file(out, args.experiment)
+    check(args.experiment, memory_bytes(exp, args.runs_per_step or min(exp.runs, 256)), args.max_memory,
+          "one tuning step (reverse mode keeps every run's filter states for every step)",
+          "fewer --runs-per-step, or fewer experiment.steps")
 
     run_tune(exp, names, steps=args.steps, lr=args.lr, loss=args.loss, runs_per_step=args.runs_per_step,
              labels=labels, out_toml=out, log=lambda line: print(line, flush=True), every=args.every)
@@ -115,9 +148,11 @@ def cmd_tune(args) -> int:
 
 def cmd_sweep(args) -> int:
     from tracklab.config import MAX_RUNS, load_experiment
-    from tracklab.sweep import parse_grid, sweep, write_sweep
+    from tracklab.output import check_results_folder
+    from tracklab.sweep import check_sweep, grid_points, parse_grid, sweep, write_sweep
 
     exp = load_experiment(args.experiment)
+    _tracking(exp, "sweep")
     axes = []
     for g in args.grid:
         try:
@@ -129,15 +164,15 @@ def cmd_sweep(args) -> int:
     if args.runs is not None and args.runs > MAX_RUNS:
         raise ConfigError(args.experiment, "--runs", args.runs, f"must be <= {MAX_RUNS}")
     out = Path(args.out) if args.out else Path("results") / f"{exp.name}_sweep"
-    if out.exists() and not out.is_dir():
-        raise ConfigError(args.experiment, "--out", str(out), "exists and is not a folder")
+    check_results_folder(out, args.experiment)
+    check_sweep(exp, axes, args.runs, args.max_memory)
 
     def progress(done, total):
         if sys.stderr.isatty() or done == total:
             print(f"\r{exp.name} sweep: {done}/{total} calls", end="\n" if done == total else "", file=sys.stderr, flush=True)
 
     doc = sweep(exp, axes, runs=args.runs, progress=progress)
-    n = int(np.prod([len(a.values) for a in axes]))
+    n = grid_points(axes)
     print(f"# {exp.name}: {n} grid points x {doc['runs']} runs, {doc['wall_s']:.1f} s")
     write_sweep(exp, doc, out, figures=not args.no_figures)
     print((out / "table.md").read_text(), end="")
@@ -152,12 +187,8 @@ def cmd_table(args) -> int:
     bad = [m for m in metrics if m not in METRICS]
     if bad:
         raise ConfigError("tracklab table", "--metrics", ",".join(bad), f"must be among {', '.join(METRICS)}")
-    for d in args.results:
-        try:
-            read_stats(d)
-        except (FileNotFoundError, ValueError) as e:
-            raise ConfigError(d, "stats.json", str(Path(d) / "stats.json"), f"cannot be read ({e.__class__.__name__})") from None
-    print(combined_table(args.results, args.format, metrics), end="")
+    docs = [read_stats(d) for d in args.results]  # each checked: one line for a bad one
+    print(combined_table(args.results, args.format, metrics, docs), end="")
     return 0
 
 
@@ -167,7 +198,7 @@ def cmd_reproduce(args) -> int:
     from tracklab.reproduce import reproduce
 
     out = args.out or (tempfile.mkdtemp(prefix="tracklab-quick-") if args.quick else "results")
-    folders = reproduce(args.experiments, out, quick=args.quick)
+    folders = reproduce(args.experiments, out, quick=args.quick, max_memory=args.max_memory)
     print(f"{len(folders)} results folders and {Path(out) / 'README.md'} (combined table) rebuilt")
     return 0
 
@@ -182,6 +213,7 @@ def build_parser():
     r.add_argument("--out", help="results folder (default: results/<name>/)")
     r.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     r.add_argument("--float32", action="store_true", help="single precision (as precision = \"float32\")")
+    r.add_argument("--max-memory", type=_size, help="refuse an experiment needing more (e.g. 8G; default: this machine's memory)")
     r.set_defaults(func=cmd_run)
     tu = sub.add_parser("tune", help="tune filter parameters by gradient descent through the Monte-Carlo runs")
     tu.add_argument("experiment")
@@ -193,6 +225,7 @@ def build_parser():
     tu.add_argument("--filters", default=None, help="comma-separated labels (default: every filter with the parameters)")
     tu.add_argument("--every", type=_positive_int, default=10, help="progress line every N steps")
     tu.add_argument("--out", help="tuned experiment file (default: FILE_tuned.toml beside FILE)")
+    tu.add_argument("--max-memory", type=_size, help="refuse a tuning needing more (default: this machine's memory)")
     tu.set_defaults(func=cmd_tune)
     sw = sub.add_parser("sweep", help="evaluate every filter on a grid of parameter scale factors")
     sw.add_argument("experiment")
@@ -200,6 +233,7 @@ def build_parser():
     sw.add_argument("--runs", type=_positive_int, help="Monte-Carlo runs per grid point (default: the file's)")
     sw.add_argument("--out", help="folder (default: results/<name>_sweep/)")
     sw.add_argument("--no-figures", action="store_true")
+    sw.add_argument("--max-memory", type=_size, help="refuse a sweep needing more (default: this machine's memory)")
     sw.set_defaults(func=cmd_sweep)
     tb = sub.add_parser("table", help="one error-statistics table from several results folders")
     tb.add_argument("results", nargs="+")
@@ -210,6 +244,7 @@ def build_parser():
     rp.add_argument("--quick", action="store_true", help="20 runs each, into a temporary folder (a smoke check)")
     rp.add_argument("--experiments", default="experiments")
     rp.add_argument("--out", help="results folder (default results/, or a temporary one with --quick)")
+    rp.add_argument("--max-memory", type=_size, help="refuse experiments needing more (default: this machine's memory)")
     rp.set_defaults(func=cmd_reproduce)
     ls = sub.add_parser("list", help="experiment files, filter kinds, sensors and scenarios")
     ls.add_argument("--dir", default="experiments", help="folder of experiment files")
@@ -236,23 +271,46 @@ def _compilation_cache():
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
+def _interrupted_exit():
+    import os
+
+    from tracklab.output import written
+
+    done = written()
+    what = f"{', '.join(map(str, done))} written in full before it" if done else "previous results left untouched"
+    print(f"\ninterrupted: {what}", file=sys.stderr)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    # the temporary folder is already gone; skip interpreter teardown, which can crash
+    # while XLA's worker threads are still inside a computation
+    os._exit(130)
+
+
 def main(argv=None) -> int:
+    from tracklab.output import catch_interrupts, interrupted
+
     args = build_parser().parse_args(argv)
     _compilation_cache()
+    catch_interrupts()
     try:
-        return args.func(args)
+        code = args.func(args)
     except ConfigError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+        code = 2
+        if not interrupted():
+            print(f"error: {e}", file=sys.stderr)
     except KeyboardInterrupt:
-        import os
-
-        print("\ninterrupted: previous results left untouched", file=sys.stderr)
-        sys.stdout.flush()
-        sys.stderr.flush()
-        # the temporary folder is already gone; skip interpreter teardown, which can crash
-        # while XLA's worker threads are still inside a computation
-        os._exit(130)
+        _interrupted_exit()
+    except MemoryError:
+        code = 1
+        print("error: out of memory (previous results left untouched): set a smaller chunk, fewer steps or "
+              "runs, or --max-memory to be refused before starting", file=sys.stderr)
+    except OSError as e:  # a write that failed after the checks (a full disk): nothing half-written is left
+        code = 1
+        where = f" ({e.filename})" if e.filename else ""
+        print(f"error: cannot write{where}: {e.strerror or e} (previous results left untouched)", file=sys.stderr)
+    if interrupted():  # a Ctrl-C whose KeyboardInterrupt was swallowed (e.g. inside a callback)
+        _interrupted_exit()
+    return code
 
 
 if __name__ == "__main__":

@@ -112,6 +112,13 @@ class _Section:
             raise self._err(key, v, f"must be one of {', '.join(choices)}")
         return v
 
+    def label(self, key, default):
+        """A label tables show: non-blank, one line, at most 100 characters."""
+        v = self.string(key, default)
+        if not v.strip() or len(v) > 100 or any(ord(c) < 32 or ord(c) == 127 for c in v):
+            raise self._err(key, v, "must not be empty or only spaces (1-100 characters on one line)")
+        return v
+
     def check_unknown(self, extra=()):
         unknown = sorted(set(self.table) - self.used - set(extra))
         if unknown:
@@ -203,13 +210,34 @@ class Experiment:
                 windows=self.pred_windows,
             )
 
-    def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None):
-        """Run and write the results folder; returns the statistics dictionary."""
-        from tracklab.report import results_folder, write_results
+    def memory_bytes(self, runs=None, chunk=None) -> float:
+        """A lower bound on the bytes a run needs: one chunk's random draws (float32) for every
+        step, and each filter's per-step statistics on the host."""
+        from tracklab.engine import default_chunk
 
-        out = results_folder(self, out)
+        runs = runs or self.runs
+        chunk = min(chunk or self.chunk or default_chunk(self.scenario, self.sensor), runs)
+        width = 2 * self.dim + self.sensor.m
+        return chunk * self.steps * width * 4.0 + len(self.filters) * self.steps * 64 * 8.0
+
+    def check_memory(self, runs=None, limit=None):
+        from tracklab.memory import check
+
+        check(self.path, self.memory_bytes(runs), limit, f"a chunk of runs x {self.steps} steps",
+              "set a smaller experiment.chunk, or fewer experiment.steps")
+
+    def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None, max_memory=None):
+        """Run and write the results folder; returns the statistics dictionary.
+
+        The output folder and the memory need are checked before anything compiles."""
+        from tracklab.output import atomic_folder, check_results_folder
+        from tracklab.report import results_path, write_results
+
+        out = check_results_folder(results_path(self, out), self.path)
+        self.check_memory(runs, max_memory)
         res = self.monte_carlo(runs=runs, seed=seed, progress=progress, precision=precision)
-        return write_results(self, res, out, figures=figures)
+        with atomic_folder(out, self.path) as tmp:
+            return write_results(self, res, tmp, figures=figures)
 
 
 def _view(suite: SensorSuite, names, fusion):
@@ -233,13 +261,16 @@ def _read_toml(path: Path):
         return tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(path, "file", "", f"is not valid TOML ({e})") from None
+    except RecursionError:
+        raise ConfigError(path, "file", "", "is nested too deeply (arrays or tables within each other)") from None
     except (OSError, UnicodeDecodeError) as e:
         raise ConfigError(path, "file", "", f"cannot be read ({e.__class__.__name__})") from None
 
 
-def _multiple_of(value, dt):
+def _multiple_of(value, dt, zero=True):
+    """Whether ``value`` is a whole multiple of ``dt`` (0 allowed when ``zero``)."""
     n = value / dt
-    return abs(n - round(n)) < 1e-6
+    return abs(n - round(n)) < 1e-6 and (round(n) >= 1 or zero and value == 0)
 
 
 def _sigma_list(f, field_name, s, dim, required=True):
@@ -291,11 +322,11 @@ def _build_sensors(f, parsed, dim, dt):
         if not 0.0 < p_detect <= 1.0:
             raise ConfigError(f, f"{where}.p_detect", p_detect, "must be a probability in (0, 1]")
         period = sn.number("period", dt, positive=True)
-        if not _multiple_of(period, dt):
-            raise ConfigError(f, f"{where}.period", period, f"must be a whole multiple of experiment.dt = {dt}")
+        if not _multiple_of(period, dt, zero=False):
+            raise ConfigError(f, f"{where}.period", period, f"must be a whole multiple (1, 2, …) of experiment.dt = {dt}")
         offset = sn.number("offset", 0.0, nonneg=True)
         if not _multiple_of(offset, dt):
-            raise ConfigError(f, f"{where}.offset", offset, f"must be a whole multiple of experiment.dt = {dt}")
+            raise ConfigError(f, f"{where}.offset", offset, f"must be a whole multiple (0, 1, …) of experiment.dt = {dt}")
         if kind == "cartesian":
             sigma = _sigma_list(f, f"{where}.sigma", sn.get("sigma"), dim)
         else:
@@ -375,7 +406,7 @@ def experiment_header(f, raw, section=None):
     runs = ex.integer("runs", required=True, lo=1, hi=MAX_RUNS)
     seed = ex.integer("seed", 0, lo=0, hi=2**32 - 1)
     precision = ex.string("precision", "float64", choices=("float64", "float32"))
-    ex.get("description")
+    ex.string("description")
     return name, runs, seed, precision, ex
 
 
@@ -452,9 +483,11 @@ def load_experiment(path) -> Experiment:
                                     accel_sigma=sc.number("accel_sigma", 0.0, nonneg=True))
     else:
         p = sc.string("path", required=True)
-        tpath = (path.parent / p).resolve()
         try:
+            tpath = (path.parent / p).resolve()
             read_csv(tpath)
+        except (RuntimeError, OSError) as e:  # a symbolic-link loop, a name too long, …
+            raise ConfigError(f, "scenario.path", p, f"trajectory file cannot be opened ({e.__class__.__name__})") from None
         except TrajectoryError as e:
             raise ConfigError(f, "scenario.path", p, f"trajectory file {e}") from None
         dims = sc.integer("dims", sensor_dim or 3, lo=2, hi=3)
@@ -627,9 +660,7 @@ def _gain_value(fs, key, required=True):
 def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q) -> FilterConfig:
     fs = _Section(f, f"filter[{i}]", table)
     fkind = fs.string("kind", required=True, choices=tuple(FILTER_KINDS))
-    label = fs.string("label", fkind)
-    if not label.strip():
-        raise ConfigError(f, f"filter[{i}].label", label, "must not be empty")
+    label = fs.label("label", fkind)
 
     # what the filter sees
     all_names = tuple(s.name for s in suite.sensors)

@@ -1,19 +1,15 @@
-"""Results folders: stats.json, table.md, table.csv and figures, written atomically.
+"""Results folders: stats.json, table.md, table.csv and figures.
 
-A run is written into a hidden temporary folder beside its destination, which
-is renamed into place only when complete: an interrupted run leaves the
-previous results untouched.
+They are written into a temporary folder that replaces the destination in one
+step when complete (``tracklab.output.atomic_folder``).
 """
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import io
 import json
 import math
-import os
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -143,8 +139,8 @@ def stats_document(exp, res):
         "filters": {k: dict(f, series=_decimate(f["series"], stride)) for k, f in st["filters"].items()},
     }
     return {
+        "tracklab_version": __version__,  # first: the header of a results folder (tracklab.output)
         "name": exp.name,
-        "tracklab_version": __version__,
         "runs": res.runs,
         "steps": res.steps,
         "dt": res.dt,
@@ -165,14 +161,9 @@ def stats_document(exp, res):
     }
 
 
-def results_folder(exp, out=None) -> Path:
-    """The destination folder; refused up front if it exists and is not a folder."""
-    from tracklab.errors import ConfigError
-
-    out = Path(out) if out is not None else Path("results") / exp.name
-    if out.exists() and not out.is_dir():
-        raise ConfigError(exp.path, "--out", str(out), "exists and is not a folder")
-    return out
+def results_path(exp, out=None) -> Path:
+    """Where an experiment's results go: ``out``, or results/<name>/."""
+    return Path(out) if out is not None else Path("results") / exp.name
 
 
 def _example(exp, res):
@@ -187,29 +178,13 @@ def _example(exp, res):
     return doc
 
 
-@contextlib.contextmanager
-def atomic_folder(out: Path):
-    """Yield a temporary folder beside ``out`` that replaces it only if the block completes."""
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    try:
-        tmp.mkdir()
-        yield tmp
-        old = None
-        if out.exists():
-            old = out.parent / f".{out.name}.old-{os.getpid()}"
-            out.rename(old)
-        tmp.rename(out)
-        if old is not None:
-            shutil.rmtree(old)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-
-
 def write_json(path: Path, doc):
-    """Compact JSON, NaN and infinities as null, floats to 10 significant digits."""
+    """Compact JSON, NaN and infinities as null, floats to 10 significant digits; tracklab's
+    header (its version) first, which marks the folder as tracklab's (``tracklab.output``)."""
+    from tracklab import __version__
+    from tracklab.output import HEADER_KEY
+
+    doc = {HEADER_KEY: __version__} | dict(doc)
     path.write_text(json.dumps(_jsonable(doc), separators=(",", ":"), allow_nan=False) + "\n")
 
 
@@ -230,13 +205,12 @@ def pyplot():
     return plt
 
 
-def write_results(exp, res, out=None, figures=True):
-    """Write DIR (default results/<name>/) atomically; return the stats document."""
+def write_results(exp, res, folder: Path, figures=True):
+    """Write the statistics document, tables and figures into ``folder``; return the document."""
     doc = stats_document(exp, res)
-    with atomic_folder(results_folder(exp, out)) as tmp:
-        write_tables(tmp, doc)
-        if figures:
-            plot_figures(doc, tmp)
+    write_tables(folder, doc)
+    if figures:
+        plot_figures(doc, folder)
     return doc
 
 

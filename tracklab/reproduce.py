@@ -37,10 +37,31 @@ BEGIN, END = "<!-- tracklab table: begin -->", "<!-- tracklab table: end -->"
 
 
 def read_stats(folder) -> dict:
+    """A results folder's stats.json, checked: ConfigError in one line if it is not one."""
+    from tracklab.errors import ConfigError
+
     path = Path(folder) / "stats.json"
     if not path.is_file():
-        raise FileNotFoundError(f"{folder}: no stats.json (not a results folder)")
-    return json.loads(path.read_text())
+        raise ConfigError(folder, "stats.json", str(path), "missing: not a results folder of tracklab run")
+    try:
+        doc = json.loads(path.read_bytes())
+    except (OSError, ValueError, RecursionError) as e:
+        raise ConfigError(folder, "stats.json", str(path), f"cannot be read as JSON ({e.__class__.__name__})") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("filters"), dict) or not doc["filters"]:
+        raise ConfigError(folder, "stats.json", str(path), "must be an object whose 'filters' maps labels to filters")
+    for label, f in doc["filters"].items():
+        if not isinstance(f, dict) or not isinstance(f.get("summary"), dict):
+            raise ConfigError(folder, f"stats.json filters.{label}", str(path), "must be an object with a 'summary' object")
+        bad = next((k for k, v in f["summary"].items()
+                    if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)))), None)
+        if bad is not None:
+            raise ConfigError(folder, f"stats.json filters.{label}.summary.{bad}", str(path), "must be a number or null")
+    units = doc.get("units", ["m"])
+    if not isinstance(units, list) or not units or not isinstance(units[0], str):
+        raise ConfigError(folder, "stats.json units", str(path), "must be a list of unit names")
+    if not (doc.get("wall_s") is None or isinstance(doc["wall_s"], (int, float)) and not isinstance(doc["wall_s"], bool)):
+        raise ConfigError(folder, "stats.json wall_s", str(path), "must be a number")
+    return doc
 
 
 def _cell(v, fmt):
@@ -53,24 +74,23 @@ def _cell(v, fmt):
     return fmt.format(v)
 
 
-def combined_rows(folders, metrics=DEFAULT_METRICS):
+def combined_rows(folders, metrics=DEFAULT_METRICS, docs=None):
     rows = []
-    for folder in folders:
-        doc = read_stats(folder)
+    for folder, doc in zip(folders, docs or [read_stats(f) for f in folders]):
         for label, f in doc["filters"].items():
             values = dict(f["summary"], wall_s=doc.get("wall_s"), unit=doc.get("units", ["m"])[0])
             rows.append([Path(folder).name, label] + [values.get(m) for m in metrics])
     return rows
 
 
-def combined_table(folders, fmt="md", metrics=DEFAULT_METRICS) -> str:
-    rows = combined_rows(folders, metrics)
+def combined_table(folders, fmt="md", metrics=DEFAULT_METRICS, docs=None) -> str:
+    rows = combined_rows(folders, metrics, docs)
     titles = ["results", "filter"] + [METRICS[m][0] for m in metrics]
     if fmt == "csv":
         buf = io.StringIO()
         w = csv.writer(buf)
         w.writerow(["results", "filter", *metrics])
-        w.writerows(rows)
+        w.writerows([[v if v is None or not isinstance(v, float) or math.isfinite(v) else None for v in r] for r in rows])
         return buf.getvalue()
     cells = [[r[0], r[1]] + [_cell(v, METRICS[m][1]) for v, m in zip(r[2:], metrics)] for r in rows]
     if fmt == "latex":
@@ -86,6 +106,8 @@ def combined_table(folders, fmt="md", metrics=DEFAULT_METRICS) -> str:
 
 def update_readme(readme: Path, table: str):
     """Replace the text between the table markers (appending them if absent)."""
+    from tracklab.output import write_text_atomically
+
     text = readme.read_text() if readme.exists() else "# Results\n"
     block = f"{BEGIN}\n{table}{END}"
     if BEGIN in text and END in text:
@@ -93,24 +115,65 @@ def update_readme(readme: Path, table: str):
         text = head + block + rest.split(END, 1)[1]
     else:
         text = text.rstrip("\n") + f"\n\n## All experiments\n\n{block}\n"
-    readme.write_text(text)
+    write_text_atomically(readme, text)
 
 
-def reproduce(experiments_dir="experiments", results_dir="results", quick=False, log=print):
+def _check_outputs(exps, jobs, results_dir: Path, quick, max_memory):
+    """Every output of every job and study, and every job's memory, checked before anything runs."""
+    from tracklab.config import Experiment
+    from tracklab.errors import ConfigError
+    from tracklab.output import check_results_folder, check_tuned_file
+    from tracklab.sweep import check_sweep, parse_grid
+    from tracklab.tune import selection, unwritable
+
+    readme = results_dir / "README.md"
+    if readme.exists() and not readme.is_file():
+        raise ConfigError(readme, "README.md", str(readme), "exists and is not a file")
+    if readme.is_file() and BEGIN not in readme.read_text(errors="replace"):
+        raise ConfigError(readme, "README.md", str(readme),
+                          f"exists without tracklab's table markers ({BEGIN}): choose another results folder (--out)")
+    for exp, runs, out in jobs:
+        check_results_folder(out, exp.path, "output folder")
+        exp.check_memory(runs, max_memory)
+    for exp in exps:
+        for study in exp.studies:
+            base = results_dir / study.out
+            if not isinstance(exp, Experiment):
+                raise ConfigError(exp.path, "[[study]]", study.kind, "studies need [[filter]] tables")
+            if study.kind == "tune":
+                why = unwritable(exp, selection(exp, study.params, study.filters))
+                if why:
+                    raise ConfigError(exp.path, "study.params", list(study.params), why)
+                check_tuned_file(base.with_name(base.name + "_tuned.toml"), exp.path, "study.out")
+                check_results_folder(base.with_name(base.name + "_tuned"), exp.path, "study.out")
+            else:
+                check_results_folder(base, exp.path, "study.out")
+                axes = [parse_grid(g) for g in study.grid]
+                check_sweep(exp, axes, 4 if quick else study.runs, max_memory)
+
+
+def reproduce(experiments_dir="experiments", results_dir="results", quick=False, log=print, max_memory=None):
     """Run every experiment file and its studies; return the results folders written, in order."""
     from tracklab.config import load_experiment
+    from tracklab.errors import ConfigError
     from tracklab.studies import run_study
 
-    files = sorted(Path(experiments_dir).glob("*.toml"))
+    folder = Path(experiments_dir)
+    if not folder.is_dir():
+        raise ConfigError(folder, "--experiments", str(folder), "must be a folder of experiment files (*.toml)")
+    files = sorted(folder.glob("*.toml"))
+    if not files:
+        raise ConfigError(folder, "--experiments", str(folder), "holds no experiment file (*.toml)")
     exps = [load_experiment(p) for p in files]  # every file validated before anything runs
     results_dir = Path(results_dir)
     folders = []
     jobs = [(e, None if not quick else min(e.runs, 20), results_dir / e.name) for e in exps]
     if not quick:
         jobs += [(e, n, results_dir / f"{e.name}_{n}runs") for e in exps for n in e.also_runs]
+    _check_outputs(exps, jobs, results_dir, quick, max_memory)
     for i, (exp, runs, out) in enumerate(jobs, start=1):
         log(f"[{i}/{len(jobs)}] {exp.name}: {runs or exp.runs} runs x {exp.steps} steps -> {out}")
-        doc = exp.run(runs=runs, out=out)
+        doc = exp.run(runs=runs, out=out, max_memory=max_memory)
         log(f"        {doc['wall_s']:.1f} s")
         folders.append(out)
         if out == results_dir / exp.name:  # its tuning and sweep studies, once per experiment file

@@ -106,6 +106,9 @@ def parse_studies(f, tables, section_cls, exp_filters) -> list:
                     raise ConfigError(f, f"study[{i}].grid", g, str(e)) from None
             if len(set(names)) != len(names):
                 raise ConfigError(f, f"study[{i}].grid", grid, "each parameter may appear once")
+            missing = next((n for n in names if not any(n in fc.params for fc in exp_filters)), None)
+            if missing:
+                raise ConfigError(f, f"study[{i}].grid", grid, f"no filter of this experiment has the parameter {missing!r}")
             study = SweepStudy(tuple(grid), st.integer("runs", None, lo=1, hi=MAX_RUNS), out)
         st.check_unknown()
         studies.append(study)
@@ -117,24 +120,36 @@ def run_tune(exp, names, *, steps, lr, loss, runs_per_step, labels, out_toml: Pa
     """Tune, log progress lines, write the tuned experiment file atomically; return the TuneResult."""
     import sys
 
-    from tracklab.config import dump_toml
+    from tracklab.config import dump_toml, load_experiment
+    from tracklab.errors import ConfigError
+    from tracklab.output import TUNED_HEADER, check_tuned_file, write_text_atomically
     from tracklab.tune import tune, tuned_document
+
+    out_toml = check_tuned_file(out_toml, exp.path)
 
     def progress(k, value, gnorm):
         log(f"step {k:5d}  loss {value:.6g}  |grad| {gnorm:.3g}")
 
+    def number(v):
+        return f"{v:.6g}" if math.isfinite(v) else "— (no finite value)"
+
     res = tune(exp, names, steps=steps, lr=lr, loss=loss, runs_per_step=runs_per_step, labels=labels, every=every,
                progress=progress, eval_runs=eval_runs)
     if res.stopped:
-        print(f"warning: {res.stopped}; keeping the last finite parameters", file=sys.stderr)
+        print(f"warning: {res.stopped}", file=sys.stderr)
+        log(res.stopped)
     for label, p in res.params.items():
         log(f"{label}: " + ", ".join(f"{k} {res.initial[label][k]} -> {v}" for k, v in p.items()))
-    log(f"held-out {loss}: {res.eval_initial:.6g} -> {res.eval_tuned:.6g}")
-    doc = tuned_document(exp, res, out_toml)
-    out_toml.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_toml.with_name(f".{out_toml.name}.tmp")
-    tmp.write_text("# written by tracklab tune\n" + dump_toml(doc))
-    tmp.replace(out_toml)
+    log(f"held-out {loss}: {number(res.eval_initial)} -> {number(res.eval_tuned)}")
+    text = TUNED_HEADER + "\n" + dump_toml(tuned_document(exp, res, out_toml))
+
+    def verify(tmp):  # the file must be one `tracklab run` accepts, before it replaces anything
+        try:
+            load_experiment(tmp)
+        except ConfigError as e:
+            raise ConfigError(exp.path, "--out", str(out_toml), f"not written: the tuned values are refused ({e.allowed})") from None
+
+    write_text_atomically(out_toml, text, verify)
     log(f"tuned experiment written to {out_toml}")
     return res
 
@@ -142,6 +157,7 @@ def run_tune(exp, names, *, steps, lr, loss, runs_per_step, labels, out_toml: Pa
 def run_study(exp, study, results_dir, quick=False, log=print):
     """Rebuild one study under ``results_dir``; ``quick``: a few steps and runs, as a smoke check."""
     from tracklab.config import load_experiment
+    from tracklab.output import write_text_atomically
     from tracklab.sweep import parse_grid, sweep, write_sweep
 
     base = Path(results_dir) / study.out
@@ -157,7 +173,7 @@ def run_study(exp, study, results_dir, quick=False, log=print):
                  runs_per_step=min(study.runs_per_step, 4) if quick else study.runs_per_step,
                  labels=list(study.filters) if study.filters else None, out_toml=tuned, log=both,
                  eval_runs=8 if quick else None)
-        base.with_name(base.name + "_tune.log").write_text("\n".join(lines) + "\n")
+        write_text_atomically(base.with_name(base.name + "_tune.log"), "\n".join(lines) + "\n")
         tuned_exp = load_experiment(tuned)
         tuned_exp.run(runs=min(tuned_exp.runs, 20) if quick else None, out=base.with_name(base.name + "_tuned"))
         return [tuned]

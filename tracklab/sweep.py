@@ -27,7 +27,8 @@ import numpy as np
 
 from tracklab.engine import MonteCarloResult, Sums, make_chunk_fn, pcrlb
 from tracklab.metrics import statistics
-from tracklab.report import atomic_folder, write_json
+from tracklab.output import atomic_folder
+from tracklab.report import write_json
 
 GRID_RE = re.compile(r"^([a-z_]+)=([^:]+):([^:]+):(\d+)$")
 SCALABLE = ("q", "r", "lam", "alpha", "beta", "gamma", "rho", "b", "q_e", "r_e", "r_guide")
@@ -52,12 +53,40 @@ def parse_grid(spec: str) -> Axis:
     return Axis(name, np.geomspace(lo, hi, n))
 
 
+def grid_points(axes: list[Axis]) -> int:
+    return int(np.prod([len(a.values) for a in axes], dtype=float))
+
+
+def memory_bytes(exp, axes: list[Axis], runs=None) -> float:
+    """A lower bound: every grid point's per-step statistics of every filter (kept until the
+    sweep is written) and its PCRLB information, and one call's random draws."""
+    P = grid_points(axes)
+    runs = runs or exp.runs
+    chunk = min(exp.chunk or 1000, runs, max(16, 1_000_000 // exp.steps))
+    width = 2 * exp.dim + exp.sensor.m
+    per_point = exp.steps * (len(exp.filters) * 64 + exp.dim**2) * 8.0
+    return P * per_point + min(P, max(1, 1_000_000 // (chunk * exp.steps))) * chunk * exp.steps * width * 4.0
+
+
+def check_sweep(exp, axes: list[Axis], runs=None, limit=None):
+    """Refuse (ConfigError) a grid naming a parameter no filter has, or one too large to hold."""
+    from tracklab.errors import ConfigError
+    from tracklab.memory import check
+
+    for a in axes:
+        if not any(a.name in fc.params for fc in exp.filters):
+            raise ConfigError(exp.path, "--grid", a.name, f"no filter of this experiment has the parameter {a.name!r}")
+    check(exp.path, memory_bytes(exp, axes, runs), limit, f"a sweep of {grid_points(axes):.3g} grid points",
+          "fewer grid points (N in NAME=LO:HI:N), or fewer experiment.steps")
+
+
 def scaled(params: dict, factors: dict) -> dict:
     return {k: (v * factors[k] if k in factors else v) for k, v in params.items()}
 
 
-def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=None, progress=None):
+def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=None, progress=None, max_memory=None):
     """Statistics of every filter at every grid point: {"points": [...], "stats": [statistics, ...]}."""
+    check_sweep(exp, axes, runs, max_memory)
     specs = exp.filter_specs()
     fn = make_chunk_fn(exp.scenario, exp.sensor, specs, exp.prior_covariance(), exp.dt, exp.pred_windows)
     base = [s.filter.params for s in specs]
@@ -123,8 +152,17 @@ def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=
 
 def write_sweep(exp, doc, out, figures=True):
     """sweep.json, table.md, table.csv and heatmaps (1-D: curves) of RMSE and NEES per filter."""
-    with atomic_folder(Path(out)) as tmp:
+    with atomic_folder(Path(out), exp.path) as tmp:
         return _write_sweep(exp, doc, tmp, figures)
+
+
+def _cell(v):
+    """A table cell: a statistic with no healthy run behind it is "—", never nan."""
+    return f"{v:.4g}" if v is not None and np.isfinite(v) else "—"
+
+
+def _csv(v):
+    return v if v is not None and np.isfinite(v) else ""
 
 
 def _write_sweep(exp, doc, tmp, figures):
@@ -137,15 +175,15 @@ def _write_sweep(exp, doc, tmp, figures):
     for p in doc["points"]:
         for l in labels:
             s = p["stats"]["filters"][l]["summary"]
-            rows.append([*(p["factors"][n] for n in names), l, *(s[m] for m in metrics), s["diverged"]])
+            rows.append([*(p["factors"][n] for n in names), l, *(s.get(m) for m in metrics), s["diverged"]])
     header = [*(f"{n} x" for n in names), "filter", *metrics, "diverged"]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * len(header)) + "|"]
     for r in rows:
-        cells = [f"{v:.4g}" for v in r[:len(names)]] + [r[len(names)]] + [f"{v:.4g}" for v in r[len(names) + 1:-1]] + [str(int(r[-1]))]
+        cells = [f"{v:.4g}" for v in r[:len(names)]] + [r[len(names)]] + [_cell(v) for v in r[len(names) + 1:-1]] + [str(int(r[-1]))]
         lines.append("| " + " | ".join(cells) + " |")
     (tmp / "table.md").write_text("\n".join(lines) + "\n")
     buf = io.StringIO()
-    csv.writer(buf).writerows([header, *rows])
+    csv.writer(buf).writerows([header, *([*r[:len(names) + 1], *map(_csv, r[len(names) + 1:-1]), r[-1]] for r in rows)])
     (tmp / "table.csv").write_text(buf.getvalue())
     summary_only = {
         "name": exp.name, "runs": doc["runs"], "window": list(exp.window), "axes": doc["axes"], "wall_s": doc["wall_s"],
@@ -171,14 +209,15 @@ def _plot(doc, names, labels, folder):
                           ("pred_err_rms", f"RMS one-step prediction error ({unit})")):
         fig, axs = plt.subplots(1, len(labels), figsize=(4.2 * len(labels), 3.6), squeeze=False)
         for ax, l in zip(axs[0], labels):
-            vals = np.array([p["stats"]["filters"][l]["summary"][metric] for p in doc["points"]], float)
+            vals = np.array([p["stats"]["filters"][l]["summary"].get(metric) for p in doc["points"]], float)
+            vals = np.ma.masked_invalid(vals)  # no healthy run at a point: left blank
             if len(names) == 1:
                 ax.loglog(axes_vals[0], vals, "o-")
                 ax.set_xlabel(f"{names[0]} scale factor")
                 ax.grid(True, which="both", alpha=0.3)
             else:
                 grid = vals.reshape(len(axes_vals[0]), len(axes_vals[1]))
-                im = ax.pcolormesh(axes_vals[1], axes_vals[0], np.log10(grid), shading="nearest")
+                im = ax.pcolormesh(axes_vals[1], axes_vals[0], np.ma.log10(grid), shading="nearest")
                 ax.set_xscale("log")
                 ax.set_yscale("log")
                 ax.set_xlabel(f"{names[1]} scale factor")

@@ -101,6 +101,54 @@ def decode(theta: dict, params: dict) -> dict:
     return out
 
 
+MAX_MAGNITUDE = 1e15  # what an experiment file accepts (tracklab.config)
+
+
+def acceptable(params: dict, names) -> str | None:
+    """Why the named parameter values could not be written into an experiment file that
+    ``tracklab run`` accepts (None if they can)."""
+    for n in names:
+        if n not in params or n in FREE:
+            continue
+        v = np.asarray(params[n], float)
+        if not np.all(np.isfinite(v)):
+            return f"{n} is not finite"
+        if n in POSITIVE and not np.all((v >= 1e-300) & (v <= MAX_MAGNITUDE)):
+            return f"{n} leaves [1e-300, {MAX_MAGNITUDE:g}]"
+        if n in UNIT and not np.all((v > 0) & (v <= 1)):
+            return f"{n} leaves (0, 1]"
+        if n in GAINS and not np.all((v > 0) & (v < 4)):
+            return f"{n} leaves (0, 4)"
+    return None
+
+
+def unwritable(exp, chosen: dict) -> str | None:
+    """Why the tuned values of ``chosen`` ({label: names}) could not be written back into the
+    experiment file (None if they can): checked before tuning starts."""
+    for fc in exp.filters:
+        names = chosen.get(fc.label, ())
+        if "w0" in names:
+            return f"filter {fc.label!r}: network weights (w0) are tuned through the Python API; a file holds none"
+        if "r" in names and "r" not in exp.raw["filter"][exp.filters.index(fc)]:
+            from tracklab.config import SENSOR_SIGMAS
+
+            _, meas = exp.view(fc)
+            if meas.kind not in SENSOR_SIGMAS:  # written back as the one sensor's sigmas
+                return (f"filter {fc.label!r} sees several sensors: its r cannot be written back as sensor sigmas "
+                        f"(give the filter r = [...] in the file to tune it)")
+    return None
+
+
+def memory_bytes(exp, runs_per_step, eval_runs=None) -> float:
+    """A lower bound: the filter states reverse mode keeps for every run and step of a batch,
+    and the held-out evaluation's random draws."""
+    state = sum((3 if fc.model == "ca" else 2) * exp.dim * (1 + (3 if fc.model == "ca" else 2) * exp.dim)
+                for fc in exp.filters)
+    n_eval = eval_runs or min(exp.runs, 2000)
+    width = 2 * exp.dim + exp.sensor.m
+    return runs_per_step * exp.steps * state * 8.0 + min(n_eval, 1000) * exp.steps * width * 4.0
+
+
 def selection(exp, names, labels=None) -> dict[str, tuple[str, ...]]:
     """Which parameters of which filters are tuned: {label: names}."""
     chosen = {}
@@ -183,17 +231,31 @@ def tune(exp, names, *, steps=200, lr=0.05, loss="mse_pos", runs_per_step=None, 
         return float(jax.jit(obj.loss)(th, eval_key, e_idx, jnp.ones((n_eval,), bool)))
 
     result.eval_initial = evaluate(theta)
+    last_finite = theta  # the last parameters whose loss was finite (the start until one is seen)
     for k in range(steps):  # optimisation steps; each one is a whole batched simulation
         val, g = value_and_grad(theta, jax.random.fold_in(train_key, k), idx, live)
+        val = float(val)
         gnorm = float(jnp.sqrt(sum(jnp.vdot(x, x) for x in jax.tree_util.tree_leaves(g))))
-        if not (math.isfinite(float(val)) and math.isfinite(gnorm)):
-            result.stopped = f"stopped at step {k}: non-finite {'loss' if not math.isfinite(float(val)) else 'gradient'}"
+        if not math.isfinite(val):
+            theta = last_finite
+            result.stopped = (f"stopped at step {k}: non-finite loss; kept the parameters of step "
+                              f"{k - 1 if k else 0} (the last with a finite loss)")
             break
-        result.history.append((k, float(val), gnorm))
+        last_finite = theta
+        if not math.isfinite(gnorm):
+            result.stopped = f"stopped at step {k}: non-finite gradient; kept the parameters of step {k}"
+            break
+        result.history.append((k, val, gnorm))
         if progress and (k % every == 0 or k == steps - 1):
-            progress(k, float(val), gnorm)
-        updates, state = opt.update(g, state, theta)
-        theta = optax.apply_updates(theta, updates)
+            progress(k, val, gnorm)
+        updates, new_state = opt.update(g, state, theta)
+        new_theta = optax.apply_updates(theta, updates)
+        why = next((acceptable(p, obj.chosen[l]) for l, p in zip(obj.labels, obj.params(new_theta))
+                    if l in obj.chosen and acceptable(p, obj.chosen[l])), None)
+        if why:  # the step would leave what an experiment file accepts
+            result.stopped = f"stopped after step {k}: the next step's {why}; kept the parameters of step {k}"
+            break
+        theta, state = new_theta, new_state
     tuned = obj.params(theta)
     result.params = {l: _floats(tuned[obj.labels.index(l)], n) for l, n in obj.chosen.items()}
     result.eval_tuned = evaluate(theta)

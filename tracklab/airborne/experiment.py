@@ -81,6 +81,7 @@ TRACKERS = {
 }
 TRACKER_KINDS = tuple(TRACKERS)
 MRAD = 1e-3
+MAX_TICKS = 10**7  # radar samples per run (sample_dt against duration)
 
 
 @dataclass(frozen=True)
@@ -217,14 +218,33 @@ class AirborneExperiment:
                 out[tc.label] = acc
         return out, time.perf_counter() - t_start, compile_s
 
-    def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None):
-        from tracklab.report import atomic_folder, results_folder
+    @property
+    def ticks(self) -> int:
+        """Radar samples per run."""
+        return self.steps * self.average
 
-        out = results_folder(self, out)
+    def memory_bytes(self, runs=None) -> float:
+        """A lower bound: a chunk's per-period outputs (error, NEES, pointing, range: 12 values a
+        run and period) and the per-period statistics on the host."""
+        chunk = min(self.chunk, runs or self.runs)
+        return chunk * self.steps * 12 * 8.0 + len(self.trackers) * self.steps * 16 * 8.0
+
+    def check_memory(self, runs=None, limit=None):
+        from tracklab.memory import check
+
+        check(self.path, self.memory_bytes(runs), limit, f"{self.steps} filter periods a run",
+              "raise airborne.sample_dt or airborne.average, or shorten airborne.duration")
+
+    def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None, max_memory=None):
+        from tracklab.output import atomic_folder, check_results_folder
+        from tracklab.report import results_path
+
+        out = check_results_folder(results_path(self, out), self.path)
+        self.check_memory(runs, max_memory)
         runs = runs or self.runs
         acc, wall, compile_s = self.monte_carlo(runs, seed, progress, precision)
         doc = self.document(acc, runs, wall, compile_s, precision or self.precision)
-        with atomic_folder(out) as tmp:
+        with atomic_folder(out, self.path) as tmp:
             write_airborne_results(doc, tmp, figures)
         return doc
 
@@ -243,7 +263,8 @@ class AirborneExperiment:
         trackers = {}
         for tc in self.trackers:
             s = acc[tc.label]
-            n = np.maximum(s["n"], 1.0)
+            # runs still in lock at each period; none: every statistic is missing (NaN), never 0
+            n = np.where(s["n"] > 0, s["n"], np.nan)
             ms = s["sum_e2"] / n[:, None]
             series = {
                 "pointing": np.sqrt(s["sum_point2"] / n) / MRAD,  # mrad, the true boresight-to-LOS angle
@@ -255,6 +276,7 @@ class AirborneExperiment:
                 "nees": np.where(s["n_nees"] > 0, s["sum_nees"] / np.maximum(s["n_nees"], 1.0), np.nan),
             }
             summary = {"runs": int(runs), "diverged": int(s["lost"]), "lost_lock": int(s["lost"])}
+            summary["healthy_runs"] = int(np.min(s["n"])) if len(s["n"]) else 0
             for name, m in masks.items():
                 for key in ("pointing", "pointing_estimate", "los_rate", "range", "range_rate"):
                     summary[f"{key}[{name}]"] = float(np.sqrt(np.mean(series[key][m] ** 2)))
@@ -266,7 +288,7 @@ class AirborneExperiment:
                 lo, hi = average_chi2_interval(9, float(np.min(s["n_nees"])))
                 summary["nees"] = float(np.mean(series["nees"]))
                 summary["nees_in_bounds"] = float(np.mean((series["nees"] >= lo) & (series["nees"] <= hi)))
-            if steady is not None:
+            if steady is not None and np.isfinite(series["los_rate"]).all():
                 level = float(np.sqrt(np.mean(series["los_rate"][steady] ** 2)))
                 events = [("acquisition", 0.0)] + ([("disturbance", self.disturbance[0])] if self.disturbance else [])
                 for name, t_e in events:
@@ -345,7 +367,11 @@ def write_airborne_results(doc, folder: Path, figures=True):
         fig, axes = plt.subplots(len(rows), 1, figsize=(9, 3.2 * len(rows)), squeeze=False, sharex=True)
         for ax, (key, ylabel) in zip(axes[:, 0], rows):
             for label, f in doc["filters"].items():
-                ax.plot(t, np.asarray(f["series"][key], float), lw=0.9, label=label)
+                v = np.array([np.nan if x is None else x for x in f["series"][key]], float)
+                if np.isfinite(v).any():
+                    ax.plot(t, v, lw=0.9, label=label)
+                else:  # no run in lock: nothing to draw, said in the legend
+                    ax.plot([], [], " ", label=f"{label}: lost lock in every run")
             ax.set_ylabel(ylabel)
             ax.set_yscale("log")
             ax.grid(True, which="both", alpha=0.3)
@@ -402,6 +428,10 @@ def load_airborne_experiment(f: Path, raw: dict, section) -> AirborneExperiment:
     average = ab.integer("average", 5, lo=1, hi=1000)
     if duration < 2 * sample_dt * average:
         raise ConfigError(f, "airborne.duration", duration, f"must hold at least two filter periods ({2 * sample_dt * average:g} s)")
+    if duration / sample_dt > MAX_TICKS:
+        raise ConfigError(f, "airborne.sample_dt", sample_dt,
+                          f"gives {duration / sample_dt:.3g} radar samples a run; at most {MAX_TICKS:.0e}: "
+                          f"sample_dt >= {duration / MAX_TICKS:.3g} s for duration = {duration:g} s")
     lag = ab.number("antenna_lag", 0.02, positive=True, hi=10.0)
     limits = (ab.number("beam", 30.0, positive=True, hi=1000.0) * MRAD, ab.number("range_gate", 150.0, positive=True),
               ab.number("velocity_gate", 15.0, positive=True))
@@ -428,7 +458,7 @@ def load_airborne_experiment(f: Path, raw: dict, section) -> AirborneExperiment:
     eng = Engagement(**kw)
     if eng.turn_end < eng.turn_start:
         raise ConfigError(f, "engagement.turn_end", eng.turn_end, f"must be >= turn_start ({eng.turn_start:g})")
-    t = np.arange(0.0, duration + 1e-9, sample_dt)
+    t = np.linspace(0.0, duration, int(min(duration / sample_dt, 100_000)) + 1)
     r_min = float(np.min(np.linalg.norm(np.asarray(eng.target(t)[0] - eng.own(t)[0]), axis=-1)))
     if r_min < 100.0:
         raise ConfigError(f, "[engagement]", f"{r_min:.0f} m", "the nominal range must stay above 100 m for the whole run")
@@ -461,7 +491,7 @@ def load_airborne_experiment(f: Path, raw: dict, section) -> AirborneExperiment:
     for i, table in enumerate(tables, start=1):
         ts = section(f, f"tracker[{i}]", table)
         kind = ts.string("kind", required=True, choices=TRACKER_KINDS)
-        label = ts.string("label", kind)
+        label = ts.label("label", kind)
         if label in labels:
             raise ConfigError(f, f"tracker[{i}].label", label, "must be unique among the trackers")
         labels.add(label)

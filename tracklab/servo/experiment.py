@@ -52,6 +52,13 @@ import numpy as np
 from tracklab.errors import ConfigError
 
 ESTIMATOR_KINDS = ("kf", "dekf")
+CHUNK = 50  # runs per compiled batch
+MAX_TICKS = 10**7  # servo ticks per run (frames × frame_ticks)
+# the correctors are the paper's continuous designs (poles up to 400 rad/s), discretised at
+# the tick: the tick is kept near the paper's 1 ms
+TICK_RANGE = (1e-4, 2e-3)  # s
+CAMERA_LOOPS = ("double_loop", "velocity_lag")  # modes whose position loop is closed through the camera
+LOST = 180.0  # deg: a run whose tracking error passes half a turn has lost the target (diverged)
 
 
 @dataclass(frozen=True)
@@ -150,17 +157,36 @@ class ServoExperiment:
         x0 = jnp.asarray(np.asarray(self.target_fn()(0.0)))
         return Prior(x0, jnp.diag(jnp.array([(self.noise / 3600.0) ** 2 * 4, 1.0, 1.0])))
 
-    def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None):
-        from tracklab.report import atomic_folder, results_folder
+    @property
+    def ticks(self) -> int:
+        """Servo ticks per run."""
+        return self.frames * self.frame_ticks
+
+    def memory_bytes(self, runs=None) -> float:
+        """A lower bound: a chunk's per-tick tracking errors (and their harmonic-fit residuals),
+        the host's time base and the least-squares fit's basis and pseudo-inverse (7 per tick)."""
+        chunk = min(CHUNK, runs or self.runs)
+        return chunk * self.ticks * 2 * 8.0 + self.ticks * 15 * 8.0
+
+    def check_memory(self, runs=None, limit=None):
+        from tracklab.memory import check
+
+        check(self.path, self.memory_bytes(runs), limit, f"{self.ticks} servo ticks a run",
+              "fewer servo.frames or servo.frame_ticks")
+
+    def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None, max_memory=None):
+        from tracklab.output import atomic_folder, check_results_folder
+        from tracklab.report import results_path
 
         import jax
 
-        out = results_folder(self, out)
+        out = check_results_folder(results_path(self, out), self.path)
+        self.check_memory(runs, max_memory)
         precision = precision or self.precision
         with jax.enable_x64(precision == "float64"):  # single precision: traced and run in float32
             doc = self.simulate(runs or self.runs, self.seed if seed is None else seed, progress)
         doc["precision"] = precision
-        with atomic_folder(out) as tmp:
+        with atomic_folder(out, self.path) as tmp:
             write_servo_results(doc, tmp, figures)
         return doc
 
@@ -203,7 +229,7 @@ class ServoExperiment:
                 return jnp.max(jnp.abs(e)), jnp.sqrt(jnp.mean(resid**2)), jnp.max(rate), r["error"], r["rate_error"]
 
             fn = jax.jit(jax.vmap(one))
-            chunk = 50
+            chunk = CHUNK
             parts = []
             for c in range(0, runs, chunk):
                 t0 = time.perf_counter()
@@ -216,14 +242,7 @@ class ServoExperiment:
                 if progress:
                     progress(ci * runs + min(c + chunk, runs), len(self.cases) * runs)
             mx, rnd, rate = (np.concatenate([p[i] for p in parts]) for i in range(3))
-            summary = {
-                "max_track_err": float(np.mean(mx) * 60.0),  # arcmin
-                "max_track_err_worst": float(np.max(mx) * 60.0),
-                "random_err": float(np.mean(rnd) * 3600.0),  # arcsec
-                "max_rate_err": float(np.mean(rate)) if est is not None else float("nan"),
-                "diverged": int(np.sum(~np.isfinite(mx))),
-                "runs": int(runs),
-            }
+            summary = case_summary(mx, rnd, rate if est is not None else None)
             cases[case.label] = {"kind": case.mode, "label": case.label, "estimator": case.estimator,
                                  "summary": summary, "series": {}}
         wall = time.perf_counter() - t_start
@@ -257,6 +276,28 @@ class ServoExperiment:
 
     def _case(self, label):
         return next(c for c in self.cases if c.label == label)
+
+
+def case_summary(max_err, random_err, rate_err=None) -> dict:
+    """One case's statistics from its runs' values (deg, deg, deg/s; ``rate_err`` None without
+    an estimator). A diverged run (a non-finite value, or an error past half a turn: the target
+    lost) is counted, not averaged; with no healthy run every statistic is NaN (missing)."""
+    runs = len(max_err)
+    ok = np.isfinite(max_err) & np.isfinite(random_err) & (np.abs(max_err) <= LOST)
+    if rate_err is not None:
+        ok &= np.isfinite(rate_err)
+
+    def healthy(v, f):
+        return float(f(v[ok])) if ok.any() else float("nan")
+
+    return {
+        "max_track_err": healthy(max_err, np.mean) * 60.0,  # arcmin
+        "max_track_err_worst": healthy(max_err, np.max) * 60.0,
+        "random_err": healthy(random_err, np.mean) * 3600.0,  # arcsec
+        "max_rate_err": healthy(rate_err, np.mean) if rate_err is not None else float("nan"),
+        "diverged": int(np.sum(~ok)),
+        "runs": int(runs),
+    }
 
 
 def cone_target(half_angle, axis_elevation, period):
@@ -321,6 +362,21 @@ def write_servo_results(doc, folder: Path, figures=True):
         plt.close(fig)
 
 
+def _check_latency(f, delay, frame_dt, mode):
+    """A position loop closed through the camera is stable only while the camera's latency (the
+    delay plus half a held frame) stays inside the loop's delay margin."""
+    from tracklab.servo.loops import AzimuthAxis
+
+    margin, pm, wc = AzimuthAxis().delay_margin()
+    latency = (delay + 0.5) * frame_dt
+    if latency >= margin:
+        raise ConfigError(f, "servo.delay", delay,
+                          f"with frame_dt = {frame_dt:g} s the camera's latency ({latency:.3g} s: delay + half a frame) "
+                          f"passes the position loop's delay margin ({margin:.3g} s: {pm:.1f}° phase margin at "
+                          f"{wc:.1f} rad/s), so {mode} would be unstable; use fewer frames of delay, a shorter "
+                          f"frame_dt, or on_axis cases only")
+
+
 def load_servo_experiment(f: Path, raw: dict, section) -> ServoExperiment:
     """Validate a servo experiment file (``section``: config's typed table reader)."""
     from tracklab.config import check_sections, experiment_header
@@ -334,7 +390,17 @@ def load_servo_experiment(f: Path, raw: dict, section) -> ServoExperiment:
     frames = sv.integer("frames", 3000, lo=10, hi=10_000_000)
     frame_dt = sv.number("frame_dt", 0.01, positive=True)
     frame_ticks = sv.integer("frame_ticks", 10, lo=1, hi=1000)
+    tick = frame_dt / frame_ticks
+    if not TICK_RANGE[0] <= tick <= TICK_RANGE[1]:
+        raise ConfigError(f, "servo.frame_ticks", frame_ticks,
+                          f"gives a servo tick of {tick:.3g} s; the correctors need a tick in "
+                          f"[{TICK_RANGE[0]:g}, {TICK_RANGE[1]:g}] s (paper: 0.001 s)")
+    if frames * frame_ticks > MAX_TICKS:
+        raise ConfigError(f, "servo.frames", frames,
+                          f"x frame_ticks = {frames * frame_ticks:.3g} servo ticks a run; at most {MAX_TICKS:.0e}")
     delay = sv.integer("delay", 2, lo=1, hi=100)
+    if delay >= frames:
+        raise ConfigError(f, "servo.delay", delay, f"must be fewer frames than the run's {frames}")
     noise = sv.number("noise", 10.0, nonneg=True)
     settle = sv.number("settle", 15.0, nonneg=True)
     if settle >= frames * frame_dt:
@@ -358,7 +424,7 @@ def load_servo_experiment(f: Path, raw: dict, section) -> ServoExperiment:
     for i, table in enumerate(tables, start=1):
         es = section(f, f"estimator[{i}]", table)
         ekind = es.string("kind", required=True, choices=ESTIMATOR_KINDS)
-        label = es.string("label", ekind)
+        label = es.label("label", ekind)
         if label in labels or label == "perfect":
             raise ConfigError(f, f"estimator[{i}].label", label, "must be unique (and not 'perfect')")
         labels.add(label)
@@ -386,11 +452,13 @@ def load_servo_experiment(f: Path, raw: dict, section) -> ServoExperiment:
             raise ConfigError(f, f"case[{i}].estimator", est, f"must be 'perfect' or an estimator label from: {', '.join(labels) or '(none)'}")
         if mode != "double_loop" and est is None:
             raise ConfigError(f, f"case[{i}].estimator", None, f"mode {mode} needs an estimator (or \"perfect\")")
-        label = cs.string("label", mode if est is None else f"{mode}, {est}")
+        label = cs.label("label", mode if est is None else f"{mode}, {est}")
         if label in case_labels:
             raise ConfigError(f, f"case[{i}].label", label, "must be unique among the cases")
         case_labels.add(label)
         cs.check_unknown()
+        if mode in CAMERA_LOOPS:
+            _check_latency(f, delay, frame_dt, mode)
         cases.append(Case(label, mode, est))
     return ServoExperiment(f, name, runs, seed, frames, frame_dt, frame_ticks, delay, noise, settle, accel_ff, target,
                            estimators, cases, raw, precision=precision)

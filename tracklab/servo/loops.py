@@ -92,6 +92,22 @@ class AzimuthAxis:
         phi_v = (self.velocity_corrector * self.plant).feedback()
         return self.position_corrector * phi_v * TransferFunction.integrator()
 
+    def delay_margin(self):
+        """(seconds, phase margin in degrees, gain crossover in rad/s) of the position loop: the
+        largest pure delay inside it that keeps it stable, phase margin / crossover."""
+        L = self.open_position_loop()
+        w = np.logspace(-3, 5, 80001)
+        mag = np.abs(L(1j * w))
+        k = int(np.nonzero(mag >= 1.0)[0][-1])  # the last crossing of unit gain
+        lo, hi = w[k], w[min(k + 1, len(w) - 1)]
+        for _ in range(60):
+            mid = np.sqrt(lo * hi)
+            lo, hi = (mid, hi) if abs(L(1j * mid)) >= 1.0 else (lo, mid)
+        wc = lo
+        phase = np.unwrap(np.angle(L(1j * np.append(w[w < wc], wc))))[-1]
+        pm = np.pi + phase
+        return float(pm / wc), float(np.degrees(pm)), float(wc)
+
 
 def _tick(blocks, x, w_ff, *, e_pos=None, reference=None):
     """One tick. Either the position-loop input ``e_pos`` is given (a held miss distance) or the

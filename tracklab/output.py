@@ -1,0 +1,345 @@
+"""Where results go: output paths checked before anything runs, folders replaced atomically.
+
+tracklab writes only where it may:
+
+* a results folder (``run``, ``sweep``, ``reproduce``) goes to a path that does not exist
+  yet, an empty folder, or a folder tracklab wrote before: one holding ``stats.json`` or
+  ``sweep.json`` with tracklab's header and nothing but the files tracklab writes there.
+  Anything else (a folder of the user's, the working folder, the experiment's own folder)
+  is refused with one line before anything compiles;
+* a tuned experiment file (``tune --out``) goes to a new path or replaces a file that
+  starts with tracklab's header line;
+* the path must be creatable and writable, its name short enough for the temporary name
+  written beside it (``.NAME.tmp-PID``), which is probed before the work starts.
+
+A new folder is written under the temporary name and swapped into place in one step:
+``renameat2(RENAME_EXCHANGE)`` on Linux (``renamex_np(RENAME_SWAP)`` on macOS), so the
+path holds either the previous results or the complete new ones at every instant. Where
+the file system cannot exchange, the old folder is renamed aside first
+(``.NAME.old-PID``) and restored by the next run if a kill fell between the two renames.
+Temporary folders of processes that no longer exist are removed by the next run.
+
+Ctrl-C: ``catch_interrupts`` (installed by the command line) records every SIGINT, even
+one whose ``KeyboardInterrupt`` was swallowed inside a callback, and the swap checks the
+record first, with SIGINT blocked across the swap itself: an interrupted command leaves
+the previous results or the complete new ones, and exits 130.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import errno
+import json
+import os
+import re
+import shutil
+import signal
+import sys
+import tempfile
+from pathlib import Path
+
+from tracklab.errors import ConfigError
+
+RESULTS_DOCUMENTS = ("stats.json", "sweep.json")  # the file that marks a tracklab results folder
+RESULTS_FILES = frozenset(RESULTS_DOCUMENTS + ("table.md", "table.csv"))  # and the figures, *.png
+HEADER_KEY = "tracklab_version"  # the first key of every document tracklab writes
+TUNED_HEADER = "# written by tracklab tune"  # the first line of a tuned experiment file
+_PID_WIDTH = 7  # /proc/sys/kernel/pid_max is at most 2**22: seven digits
+
+_interrupted = False
+_written: list[Path] = []
+
+
+# --- Ctrl-C --------------------------------------------------------------------------------
+
+
+def _on_sigint(signum, frame):
+    global _interrupted
+    _interrupted = True
+    raise KeyboardInterrupt
+
+
+def catch_interrupts():
+    """Record every SIGINT (the command line calls this once; a library user need not)."""
+    global _interrupted
+    _interrupted = False
+    _written.clear()
+    try:
+        if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
+            signal.signal(signal.SIGINT, _on_sigint)
+    except ValueError:  # not the main thread: its SIGINT is the main thread's business
+        pass
+
+
+def interrupted() -> bool:
+    """Whether a SIGINT arrived since ``catch_interrupts``."""
+    return _interrupted
+
+
+def written() -> list[Path]:
+    """The outputs put in place since ``catch_interrupts``."""
+    return list(_written)
+
+
+def _raise_if_interrupted():
+    if _interrupted:
+        raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def _sigint_blocked():
+    can = hasattr(signal, "pthread_sigmask")
+    if can:
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        if can:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
+# --- what a path is -------------------------------------------------------------------------
+
+
+def _real(path) -> Path:
+    return Path(os.path.realpath(os.path.abspath(path)))
+
+
+def _name_max(folder: Path) -> int:
+    try:
+        return os.pathconf(folder, "PC_NAME_MAX")
+    except (OSError, ValueError, AttributeError):
+        return 255
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True
+    return True
+
+
+def is_results_document(path: Path) -> bool:
+    """Whether ``path`` is a stats.json / sweep.json tracklab wrote (its header, or the keys of
+    one written before the header existed)."""
+    try:
+        with open(path, "rb") as fh:
+            doc = json.loads(fh.read())
+    except (OSError, ValueError, RecursionError):
+        return False
+    if not isinstance(doc, dict):
+        return False
+    return HEADER_KEY in doc or ("experiment" in doc and ("filters" in doc or "points" in doc))
+
+
+def foreign_entries(folder: Path) -> list[str]:
+    """What in an existing folder tracklab did not write there (empty for a results folder)."""
+    entries = sorted(os.listdir(folder))
+    if not entries:
+        return []
+    docs = [e for e in entries if e in RESULTS_DOCUMENTS]
+    if not docs or not all(is_results_document(folder / d) for d in docs):
+        return entries
+    return [e for e in entries
+            if not ((e in RESULTS_FILES or e.endswith(".png")) and (folder / e).is_file() and not (folder / e).is_symlink())]
+
+
+def _inside(a: Path, b: Path) -> bool:
+    """Whether a is b or lies under it."""
+    return a == b or b in a.parents
+
+
+def _probe(folder: Path, file, field, value):
+    """Create and remove a temporary folder in ``folder`` (the first existing one on the way)."""
+    anc = folder
+    while not anc.exists():
+        anc = anc.parent
+    if not anc.is_dir():
+        raise ConfigError(file, field, value, f"cannot be created: {anc} is not a folder")
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".tracklab-probe-", dir=anc))
+    except OSError as e:
+        raise ConfigError(file, field, value, f"cannot be written: {e.strerror or e} in {anc}") from None
+
+
+def _check_names(path: Path, file, field, value, suffix_len):
+    """Every missing component within NAME_MAX, and the temporary name beside the last one."""
+    anc = path
+    while not anc.exists():
+        anc = anc.parent
+    limit = _name_max(anc if anc.is_dir() else anc.parent)
+    for part in path.relative_to(anc).parts if path != anc else ():
+        if len(os.fsencode(part)) > limit:
+            raise ConfigError(file, field, value, f"a name in it is longer than {limit} bytes")
+    need = 1 + len(os.fsencode(path.name)) + suffix_len
+    if need > limit:
+        raise ConfigError(file, field, value,
+                          f"its name must be at most {limit - 1 - suffix_len} bytes (tracklab writes beside it "
+                          f"under .NAME.tmp-PID first)")
+
+
+def check_results_folder(out, file, field="--out") -> Path:
+    """The real path of a results folder to be written at ``out``, or ConfigError in one line.
+
+    ``file``: the experiment file (its folder may not be the output).
+    """
+    value = str(out)
+    if os.path.lexists(out) and os.path.islink(out) and not os.path.exists(out):
+        raise ConfigError(file, field, value, "is a symbolic link to nothing")
+    real = _real(out)
+    cwd = _real(os.getcwd())
+    if _inside(cwd, real):
+        raise ConfigError(file, field, value, "is the working folder or one above it: name a folder of its own")
+    if file is not None and Path(file).exists() and _inside(_real(file).parent, real):
+        raise ConfigError(file, field, value, "holds the experiment file: name a folder of its own")
+    if real.exists():
+        if not real.is_dir():
+            raise ConfigError(file, field, value, "exists and is not a folder")
+        try:
+            foreign = foreign_entries(real)
+        except OSError as e:
+            raise ConfigError(file, field, value, f"cannot be read: {e.strerror or e}") from None
+        if foreign:
+            shown = ", ".join(foreign[:3]) + (", …" if len(foreign) > 3 else "")
+            raise ConfigError(file, field, value,
+                              f"is a folder tracklab did not write (it holds {shown}): name a new or empty folder, "
+                              f"or a results folder of tracklab's")
+    _check_names(real, file, field, value, len(".tmp-") + _PID_WIDTH)
+    _probe(real.parent, file, field, value)
+    return real
+
+
+def check_tuned_file(out, file, field="--out") -> Path:
+    """The real path of a tuned experiment file to be written at ``out``, or ConfigError."""
+    value = str(out)
+    if os.path.lexists(out) and os.path.islink(out) and not os.path.exists(out):
+        raise ConfigError(file, field, value, "is a symbolic link to nothing")
+    real = _real(out)
+    if real.exists():
+        if real.is_dir():
+            raise ConfigError(file, field, value, "is a folder: name the tuned experiment file (.toml) to write")
+        try:
+            with open(real, "rb") as fh:
+                first = fh.read(len(TUNED_HEADER) + 1)
+        except OSError as e:
+            raise ConfigError(file, field, value, f"cannot be read: {e.strerror or e}") from None
+        if not first.startswith(TUNED_HEADER.encode()):
+            raise ConfigError(file, field, value,
+                              "exists and was not written by tracklab tune: name a new file, or one tune wrote")
+    _check_names(real, file, field, value, len(".tmp-") + _PID_WIDTH)
+    _probe(real.parent, file, field, value)
+    return real
+
+
+# --- writing -------------------------------------------------------------------------------
+
+_TEMP_RE = re.compile(r"^\.(?P<name>.+)\.(?P<what>tmp|old)-(?P<pid>\d+)$")
+
+
+def clean_stale(out: Path):
+    """Remove temporary folders beside ``out`` left by processes that no longer exist; an
+    ``.old`` folder of a dead process is put back if ``out`` itself is missing."""
+    parent = out.parent
+    try:
+        entries = os.listdir(parent)
+    except OSError:
+        return
+    for e in entries:
+        m = _TEMP_RE.match(e)
+        if not m or m["name"] != out.name or int(m["pid"]) == os.getpid() or _pid_alive(int(m["pid"])):
+            continue
+        path = parent / e
+        if m["what"] == "old" and not os.path.lexists(out):
+            with contextlib.suppress(OSError):
+                os.rename(path, out)
+                continue
+        shutil.rmtree(path, ignore_errors=True)
+        with contextlib.suppress(OSError):
+            os.remove(path)
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two paths in one step; False where the system or file system cannot."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+    except OSError:
+        return False
+    if sys.platform.startswith("linux") and hasattr(libc, "renameat2"):
+        AT_FDCWD, RENAME_EXCHANGE = -100, 2
+        r = libc.renameat2(AT_FDCWD, os.fsencode(a), AT_FDCWD, os.fsencode(b), RENAME_EXCHANGE)
+    elif sys.platform == "darwin" and hasattr(libc, "renamex_np"):
+        RENAME_SWAP = 2
+        r = libc.renamex_np(os.fsencode(a), os.fsencode(b), RENAME_SWAP)
+    else:
+        return False
+    if r == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.ENOTSUP, errno.EOPNOTSUPP):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
+def _put_in_place(tmp: Path, out: Path):
+    """Make the complete folder ``tmp`` the folder ``out``; the previous one is removed."""
+    try:
+        os.rename(tmp, out)  # out absent (or an empty folder)
+        return
+    except OSError as e:
+        if e.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+            raise
+    if _exchange(tmp, out):
+        shutil.rmtree(tmp, ignore_errors=True)  # now the previous results
+        return
+    old = out.parent / f".{out.name}.old-{os.getpid()}"
+    os.rename(out, old)
+    os.rename(tmp, out)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def atomic_folder(out, file=None, field="--out"):
+    """Yield an empty temporary folder beside ``out`` that replaces ``out`` when the block
+    completes (and is removed if it does not). ``out`` is checked again first."""
+    out = check_results_folder(out, file, field)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    clean_stale(out)
+    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    try:
+        yield tmp
+        _raise_if_interrupted()
+        if os.path.isdir(out) and foreign_entries(out):  # someone else's folder appeared meanwhile
+            raise ConfigError(file, field, str(out), "became a folder tracklab did not write while it ran")
+        with _sigint_blocked():
+            _put_in_place(tmp, out)
+            _written.append(out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def write_text_atomically(path, text: str, verify=None):
+    """Write ``path`` through a temporary file beside it, replaced in one step; ``verify(tmp)``,
+    if given, may refuse the file (by raising) before it replaces anything."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    clean_stale(path)
+    tmp = path.parent / f".{path.name}.tmp-{os.getpid()}"
+    try:
+        tmp.write_text(text)
+        if verify is not None:
+            verify(tmp)
+        _raise_if_interrupted()
+        with _sigint_blocked():
+            os.replace(tmp, path)
+            _written.append(path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        raise
