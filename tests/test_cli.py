@@ -273,14 +273,15 @@ def test_bad_arguments_refused_by_argparse(tmp_path, args):
     (tmp_path / "small.toml").write_text(VALID)
     proc = tracklab("run", "small.toml", *args, "--out", "out", cwd=tmp_path)
     assert proc.returncode == 2
-    assert "usage: tracklab run" in proc.stderr
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: tracklab run:"), proc.stderr
     assert args[0] in proc.stderr and "Traceback" not in proc.stderr
     assert not (tmp_path / "out").exists()
 
 
 def test_no_command_is_refused(tmp_path):
     proc = tracklab(cwd=tmp_path)
-    assert proc.returncode == 2 and "usage: tracklab" in proc.stderr
+    assert proc.returncode == 2 and proc.stderr.startswith("error: tracklab:") and len(proc.stderr.splitlines()) == 1
 
 
 # --- list -----------------------------------------------------------------------------------

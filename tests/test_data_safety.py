@@ -116,7 +116,13 @@ def make_results(folder: Path, text="previous"):
 
 
 def snapshot(folder: Path) -> dict:
-    return {str(p.relative_to(folder)): (None if p.is_dir() else p.read_bytes()) for p in sorted(folder.rglob("*"))}
+    """Every path under ``folder`` -> its bytes (a link: its target; a folder: None)."""
+    def value(p):
+        if p.is_symlink():
+            return "link to " + os.readlink(p)
+        return None if p.is_dir() else p.read_bytes()
+
+    return {str(p.relative_to(folder)): value(p) for p in sorted(folder.rglob("*"))}
 
 
 def leftovers(folder: Path) -> list[str]:
@@ -129,6 +135,8 @@ def main(capsys, *args, cwd):
     os.chdir(cwd)
     try:
         code = cli.main([str(a) for a in args])
+    except SystemExit as e:  # argparse's refusals
+        code = e.code
     finally:
         os.chdir(old)
     out, err = capsys.readouterr()
@@ -247,9 +255,13 @@ def test_stale_temporaries_of_dead_processes_are_cleaned_and_a_lost_folder_resto
     make_results(tmp_path / f".other.tmp-{pid}", "not ours")  # another output's: left alone
     live = tmp_path / f".res.tmp-{os.getppid()}"  # a live process's: left alone
     make_results(live, "live")
+    mine = tmp_path / f".res.tmp-{dead_pid()}"  # a look-alike holding a user's file: never touched
+    mine.mkdir()
+    (mine / "notes.txt").write_text("precious")
     clean_stale(out)
     assert json.loads((out / "stats.json").read_text())["note"] == "kept"
-    assert sorted(os.listdir(tmp_path)) == sorted([".other.tmp-%d" % pid, live.name, "res"])
+    assert sorted(os.listdir(tmp_path)) == sorted([".other.tmp-%d" % pid, live.name, mine.name, "res"])
+    assert (mine / "notes.txt").read_text() == "precious"
 
 
 def test_foreign_entries_names_what_tracklab_did_not_write(tmp_path):
@@ -398,6 +410,7 @@ def test_sweep_table_shows_missing_not_nan(tmp_path):
     md = (tmp_path / "sw" / "table.md").read_text()
     assert "nan" not in md.lower() and "| 2 | KF | — | — | — | — | — | 6 |" in md
     assert "nan" not in (tmp_path / "sw" / "table.csv").read_text().lower()
+    assert (tmp_path / "sw" / "sweep_rmse_pos.png").is_file()
     doc = json.loads((tmp_path / "sw" / "sweep.json").read_text())
     assert doc[HEADER_KEY] and doc["points"][1]["filters"]["KF"]["summary"]["rmse_pos"] is None
 
@@ -421,6 +434,7 @@ def test_tune_that_blows_up_writes_the_last_finite_parameters(tmp_path, capsys):
     (SMALL.replace("sigma = 10.0", "sigma = 10.0\nperiod = 1e-7"), "sensor.period", "whole multiple"),
     (SMALL.replace("sigma = 10.0", "sigma = 10.0\nperiod = 1e-300"), "sensor.period", "whole multiple"),
     (SMALL.replace("sigma = 10.0", "sigma = 10.0\noffset = 1e-7"), "sensor.offset", "whole multiple"),
+    (SMALL.replace("sigma = 10.0", "sigma = 10.0\noffset = 100.0"), "sensor.offset", "reports at no step"),
     (SMALL.replace('label = "KF"', 'label = "   "'), "filter[1].label", "only spaces"),
     (AIRBORNE.replace('kind = "cd_ekf"', 'kind = "cd_ekf"\nlabel = ""'), "tracker[1].label", "only spaces"),
     (AIRBORNE.replace('kind = "cd_ekf"', 'kind = "cd_ekf"\nlabel = " \\t"'), "tracker[1].label", "one line"),
@@ -431,6 +445,8 @@ def test_tune_that_blows_up_writes_the_last_finite_parameters(tmp_path, capsys):
     (SERVO.replace("settle = 0.5", "settle = 0.5\nframe_dt = 1.0"), "servo.frame_ticks", "tick"),
     (SERVO.replace("frames = 100", "frames = 10000000").replace("settle = 0.5", "settle = 0.5\nframe_ticks = 1000\nframe_dt = 1.0"),
      "servo.frames", "servo ticks"),
+    (SERVO.replace("runs = 2", "runs = 100000000").replace("frames = 100", "frames = 1000000"), "experiment.runs",
+     "servo ticks"),
     (AIRBORNE.replace("duration = 4.0", "duration = 4.0\nsample_dt = 1e-9"), "airborne.sample_dt", "radar samples"),
     (AIRBORNE.replace("duration = 4.0", "duration = 4.0\nsample_dt = 1e-7"), "airborne.sample_dt", "radar samples"),
     ("[experiment]\nname = 'x'\ndescription = " + "[" * 3000 + "]" * 3000 + "\n", "file", "nested too deeply"),
@@ -474,6 +490,12 @@ def test_servo_latency_inside_the_margin_and_on_axis_are_accepted(tmp_path):
     (("table", "bad3"), "'summary'"),
     (("table", "bad4"), "JSON"),
     (("table", "nowhere"), "missing"),
+    (("table", "bad5"), "summary.rmse_pos"),
+    (("list", "--dir", "nowhere"), "must be a folder"),
+    (("run", "small.toml", "--out", "loopa/x"), "symbolic link to nothing (or a loop)"),
+    (("run", "small.toml", "--out", "/".join(["d" * 200] * 25)), "longer than this system's"),
+    (("run", "small.toml", "--runs", "-3"), "must be >= 1"),
+    (("sweep", "small.toml"), "--grid"),
     (("reproduce", "--experiments", "/nonexistent"), "must be a folder"),
     (("reproduce", "--experiments", "empty"), "no experiment file"),
 ])
@@ -483,10 +505,12 @@ def test_commands_refuse_in_one_line_before_compiling(tmp_path, capsys, args, ex
                            "runs = 6", "runs = 1000000"))):
         (tmp_path / name).write_text(text)
     for name, text in (("bad1", "[]"), ("bad2", '{"filters": 5}'), ("bad3", '{"filters": {"KF": {"kind": "kf"}}}'),
-                       ("bad4", "[" * 100_000)):
+                       ("bad4", "[" * 100_000), ("bad5", '{"filters": {"KF": {"summary": {"rmse_pos": 1%s}}}}' % ("0" * 400))):
         (tmp_path / name).mkdir()
         (tmp_path / name / "stats.json").write_text(text)
     (tmp_path / "empty").mkdir()
+    (tmp_path / "loopa").symlink_to(tmp_path / "loopb")
+    (tmp_path / "loopb").symlink_to(tmp_path / "loopa")
     before = snapshot(tmp_path)
     refused(capsys, *args, cwd=tmp_path, expect=(expect,))
     assert snapshot(tmp_path) == before
@@ -499,9 +523,34 @@ def test_reproduce_refuses_a_readme_it_did_not_write_and_a_study_grid_no_filter_
     (tmp_path / "res").mkdir()
     (tmp_path / "res" / "README.md").write_text("# my own notes\n")
     before = snapshot(tmp_path)
-    refused(capsys, "reproduce", "--experiments", "exps", "--out", "res", cwd=tmp_path, expect=("table markers",))
+    refused(capsys, "reproduce", "--experiments", "exps", "--out", "res", cwd=tmp_path, expect=("did not write",))
+    for out, expect in ((".", "working folder"), ("exps", "experiment files")):
+        refused(capsys, "reproduce", "--experiments", "exps", "--out", out, cwd=tmp_path, expect=(expect,))
     assert snapshot(tmp_path) == before
     (exps / "small.toml").write_text(SMALL + '\n[[study]]\nkind = "sweep"\ngrid = ["rho=0.5:1:2"]\nout = "s"\n')
     refused(capsys, "reproduce", "--experiments", "exps", "--out", "res2", cwd=tmp_path,
             expect=("study[1].grid", "no filter of this experiment has the parameter 'rho'"))
     assert not (tmp_path / "res2").exists()
+
+
+def test_heatmap_cells_are_centred_on_their_grid_values():
+    from tracklab.sweep import _log_edges
+
+    edges = _log_edges([0.1, 1.0, 10.0])
+    np.testing.assert_allclose(edges, [10**-1.5, 10**-0.5, 10**0.5, 10**1.5])
+    centres = np.sqrt(edges[1:] * edges[:-1])  # on a log axis
+    np.testing.assert_allclose(centres, [0.1, 1.0, 10.0])
+    np.testing.assert_allclose(_log_edges([3.0]), [1.5, 6.0])
+
+
+def test_a_label_cannot_break_a_markdown_table(tmp_path):
+    from tracklab.airborne.experiment import airborne_tables
+    from tracklab.report import markdown_table
+
+    doc = {"filters": {"EKF | x": {"kind": "ekf", "summary": {"rmse_pos": 1.0, "runs": 3}}}}
+    row = markdown_table(doc).splitlines()[2]
+    assert row == "| EKF \\| x | ekf | 1.00 | 3 |"
+    air = {"name": "a", "runs": 2, "steps": 3, "dt": 0.05, "windows": ["acquisition"],
+           "filters": {"EKF | x": {"kind": "cd_ekf", "summary": {"lost_lock": 0}}}}
+    table = airborne_tables(air)  # no steady window: no settling columns, a well-formed table
+    assert "| tracker | lost lock (runs) |\n|---|---|\n| EKF \\| x | 0 |" in table

@@ -55,7 +55,8 @@ def cmd_run(args) -> int:
     from tracklab.report import markdown_table
 
     exp = load_experiment(args.experiment)
-    if args.runs is not None and (args.runs > MAX_RUNS or args.runs * exp.steps > 10**12):
+    per_run = getattr(exp, "ticks", exp.steps)  # closed loops: radar samples or servo ticks
+    if args.runs is not None and (args.runs > MAX_RUNS or args.runs * per_run > 10**12):
         raise ConfigError(args.experiment, "--runs", args.runs, f"must be <= {MAX_RUNS} and runs x steps <= 1e12")
     runs = args.runs or exp.runs
     out = Path(args.out) if args.out else Path("results") / exp.name
@@ -80,6 +81,8 @@ def cmd_list(args) -> int:
     from tracklab.sensors import SENSOR_KINDS
 
     folder = Path(args.dir)
+    if not folder.is_dir():
+        raise ConfigError("tracklab list", "--dir", str(folder), "must be a folder (of experiment files)")
     print(f"experiments ({folder}/):")
     files = sorted(folder.glob("*.toml")) if folder.is_dir() else []
     for p in files:
@@ -203,9 +206,17 @@ def cmd_reproduce(args) -> int:
     return 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with a bad argument refused in one line (exit 2), like every other bad input."""
+
+    def error(self, message):
+        print(f"error: {self.prog}: {message} (see {self.prog} --help)", file=sys.stderr)
+        raise SystemExit(2)
+
+
 def build_parser():
-    p = argparse.ArgumentParser(prog="tracklab", description="Monte-Carlo evaluation of tracking filters")
-    sub = p.add_subparsers(dest="command", required=True)
+    p = _Parser(prog="tracklab", description="Monte-Carlo evaluation of tracking filters")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
     r = sub.add_parser("run", help="run an experiment file and write its results folder")
     r.add_argument("experiment")
     r.add_argument("--runs", type=_positive_int, help="Monte-Carlo runs (default: the file's)")

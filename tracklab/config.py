@@ -306,7 +306,7 @@ def _parse_sensors(f, raw):
     return out
 
 
-def _build_sensors(f, parsed, dim, dt):
+def _build_sensors(f, parsed, dim, dt, steps):
     sensors, names = [], set()
     for where, sn, kind in parsed:
         name = sn.string("name", kind)
@@ -333,7 +333,10 @@ def _build_sensors(f, parsed, dim, dt):
             sigma = tuple(sn.number(k, required=True, positive=True) for k in SENSOR_SIGMAS[kind])
         sn.check_unknown()
         frame_dim = 2 if kind == "mount" else dim  # a mount observes its two angles
-        sensors.append(Sensor(kind, frame_dim, sigma, p_detect, name=name, dt=dt, period=period, offset=offset))
+        sensor = Sensor(kind, frame_dim, sigma, p_detect, name=name, dt=dt, period=period, offset=offset)
+        if not sensor.report_mask(steps).any():
+            raise ConfigError(f, f"{where}.offset", offset, f"the sensor reports at no step: the run ends at {steps * dt:g} s")
+        sensors.append(sensor)
     return SensorSuite(tuple(sensors))
 
 
@@ -500,7 +503,7 @@ def load_experiment(path) -> Experiment:
             raise ConfigError(f, "experiment.steps", steps, f"the trajectory from start = {start} s holds at most {avail} steps of {dt} s")
     sc.check_unknown()
     dim = scenario.dim
-    suite = _build_sensors(f, parsed_sensors, dim, dt)
+    suite = _build_sensors(f, parsed_sensors, dim, dt, steps)
     mounts = [s.kind == "mount" for s in suite.sensors]
     if any(mounts):  # angle tracking: the truth in the mount frame, filters on [az, el] (deg)
         if not all(mounts):

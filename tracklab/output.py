@@ -45,6 +45,7 @@ RESULTS_DOCUMENTS = ("stats.json", "sweep.json")  # the file that marks a trackl
 RESULTS_FILES = frozenset(RESULTS_DOCUMENTS + ("table.md", "table.csv"))  # and the figures, *.png
 HEADER_KEY = "tracklab_version"  # the first key of every document tracklab writes
 TUNED_HEADER = "# written by tracklab tune"  # the first line of a tuned experiment file
+TABLE_BEGIN, TABLE_END = "<!-- tracklab table: begin -->", "<!-- tracklab table: end -->"  # in a results README
 _PID_WIDTH = 7  # /proc/sys/kernel/pid_max is at most 2**22: seven digits
 
 _interrupted = False
@@ -182,20 +183,64 @@ def _check_names(path: Path, file, field, value, suffix_len):
                           f"under .NAME.tmp-PID first)")
 
 
+def _resolve(out, file, field) -> Path:
+    """The real path of ``out``; ConfigError for a path too long or through a broken or looping link."""
+    value = str(out)
+    try:
+        limit = os.pathconf("/", "PC_PATH_MAX")
+    except (OSError, ValueError, AttributeError):
+        limit = 4096
+    path = Path(os.path.abspath(out))
+    if len(os.fsencode(str(path))) >= limit:
+        raise ConfigError(file, field, value, f"the path is longer than this system's {limit - 1} bytes")
+    try:
+        for p in [*reversed(path.parents), path]:
+            if os.path.lexists(p) and not os.path.exists(p):
+                raise ConfigError(file, field, value, f"passes through {p}, a symbolic link to nothing (or a loop)")
+        return Path(os.path.realpath(path))
+    except OSError as e:
+        raise ConfigError(file, field, value, f"cannot be resolved: {e.strerror or e}") from None
+
+
 def check_results_folder(out, file, field="--out") -> Path:
     """The real path of a results folder to be written at ``out``, or ConfigError in one line.
 
     ``file``: the experiment file (its folder may not be the output).
     """
     value = str(out)
-    if os.path.lexists(out) and os.path.islink(out) and not os.path.exists(out):
-        raise ConfigError(file, field, value, "is a symbolic link to nothing")
-    real = _real(out)
+    real = _resolve(out, file, field)
     cwd = _real(os.getcwd())
     if _inside(cwd, real):
         raise ConfigError(file, field, value, "is the working folder or one above it: name a folder of its own")
     if file is not None and Path(file).exists() and _inside(_real(file).parent, real):
         raise ConfigError(file, field, value, "holds the experiment file: name a folder of its own")
+    return _check_folder_contents(real, file, field, value)
+
+
+def check_results_parent(out, experiments, field="--out") -> Path:
+    """The real path of the folder ``reproduce`` writes its results folders and README.md into:
+    new, empty, or one holding a README.md with tracklab's table markers (a results folder of
+    tracklab's); never the working folder, one above it, or the experiments' folder."""
+    value = str(out)
+    real = _resolve(out, experiments, field)
+    if _inside(_real(os.getcwd()), real):
+        raise ConfigError(experiments, field, value, "is the working folder or one above it: name a folder of its own")
+    if _inside(_real(experiments), real):
+        raise ConfigError(experiments, field, value, "holds the experiment files: name a folder of its own")
+    if real.exists():
+        if not real.is_dir():
+            raise ConfigError(experiments, field, value, "exists and is not a folder")
+        readme = real / "README.md"
+        if os.listdir(real) and not (readme.is_file() and TABLE_BEGIN in readme.read_text(errors="replace")):
+            raise ConfigError(experiments, field, value,
+                              f"is a folder tracklab did not write (no README.md with {TABLE_BEGIN}): "
+                              f"name a new or empty folder")
+    _check_names(real, experiments, field, value, 0)
+    _probe(real, experiments, field, value)
+    return real
+
+
+def _check_folder_contents(real: Path, file, field, value) -> Path:
     if real.exists():
         if not real.is_dir():
             raise ConfigError(file, field, value, "exists and is not a folder")
@@ -216,9 +261,7 @@ def check_results_folder(out, file, field="--out") -> Path:
 def check_tuned_file(out, file, field="--out") -> Path:
     """The real path of a tuned experiment file to be written at ``out``, or ConfigError."""
     value = str(out)
-    if os.path.lexists(out) and os.path.islink(out) and not os.path.exists(out):
-        raise ConfigError(file, field, value, "is a symbolic link to nothing")
-    real = _real(out)
+    real = _resolve(out, file, field)
     if real.exists():
         if real.is_dir():
             raise ConfigError(file, field, value, "is a folder: name the tuned experiment file (.toml) to write")
@@ -253,13 +296,33 @@ def clean_stale(out: Path):
         if not m or m["name"] != out.name or int(m["pid"]) == os.getpid() or _pid_alive(int(m["pid"])):
             continue
         path = parent / e
-        if m["what"] == "old" and not os.path.lexists(out):
-            with contextlib.suppress(OSError):
+        try:
+            if not _written_by_tracklab(path):  # a look-alike of the user's: never touched
+                continue
+            if m["what"] == "old" and not os.path.lexists(out):
                 os.rename(path, out)
                 continue
-        shutil.rmtree(path, ignore_errors=True)
-        with contextlib.suppress(OSError):
-            os.remove(path)
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path)
+            else:
+                os.remove(path)
+        except OSError:
+            continue
+
+
+def _written_by_tracklab(path: Path) -> bool:
+    """Whether a temporary left beside an output holds only what tracklab writes: a folder with
+    nothing but results files (possibly cut short), or a tuned file or results README."""
+    if path.is_symlink():
+        return False
+    if path.is_dir():
+        entries = os.listdir(path)
+        docs = [e for e in entries if e in RESULTS_DOCUMENTS]
+        return (all((e in RESULTS_FILES or e.endswith(".png")) and (path / e).is_file() for e in entries)
+                and all(is_results_document(path / d) or (path / d).stat().st_size == 0 for d in docs))
+    with open(path, "rb") as fh:
+        head = fh.read(1 << 16)
+    return not head or head.startswith(TUNED_HEADER.encode()) or TABLE_BEGIN.encode() in head
 
 
 def _exchange(a: Path, b: Path) -> bool:

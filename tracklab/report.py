@@ -78,10 +78,15 @@ def table_rows(stats):
     return header, rows
 
 
+def md_cell(text) -> str:
+    """A Markdown table cell: a '|' in a label is escaped, so it cannot start a new column."""
+    return str(text).replace("\\", "\\\\").replace("|", "\\|")
+
+
 def markdown_table(stats) -> str:
     header, rows = table_rows(stats)
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * len(header)) + "|"]
-    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    lines += ["| " + " | ".join(md_cell(c) for c in r) + " |" for r in rows]
     return "\n".join(lines) + "\n"
 
 

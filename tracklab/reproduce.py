@@ -15,6 +15,9 @@ import json
 import math
 from pathlib import Path
 
+from tracklab.output import TABLE_BEGIN as BEGIN, TABLE_END as END  # the results README's table markers
+from tracklab.report import md_cell
+
 METRICS = {  # titles without units: the "unit" column gives each row's (m, or deg for a mount)
     "unit": ("unit", "{}"),
     "rmse_pos": ("RMSE pos", "auto"),
@@ -33,7 +36,17 @@ METRICS = {  # titles without units: the "unit" column gives each row's (m, or d
     "wall_s": ("wall (s)", "{:.1f}"),
 }
 DEFAULT_METRICS = tuple(METRICS)
-BEGIN, END = "<!-- tracklab table: begin -->", "<!-- tracklab table: end -->"
+
+
+def _number(v) -> bool:
+    """A JSON number a table can show (not a bool, not too large for a float)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return False
+    try:
+        float(v)
+    except OverflowError:
+        return False
+    return True
 
 
 def read_stats(folder) -> dict:
@@ -52,14 +65,13 @@ def read_stats(folder) -> dict:
     for label, f in doc["filters"].items():
         if not isinstance(f, dict) or not isinstance(f.get("summary"), dict):
             raise ConfigError(folder, f"stats.json filters.{label}", str(path), "must be an object with a 'summary' object")
-        bad = next((k for k, v in f["summary"].items()
-                    if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)))), None)
+        bad = next((k for k, v in f["summary"].items() if v is not None and not _number(v)), None)
         if bad is not None:
             raise ConfigError(folder, f"stats.json filters.{label}.summary.{bad}", str(path), "must be a number or null")
     units = doc.get("units", ["m"])
     if not isinstance(units, list) or not units or not isinstance(units[0], str):
         raise ConfigError(folder, "stats.json units", str(path), "must be a list of unit names")
-    if not (doc.get("wall_s") is None or isinstance(doc["wall_s"], (int, float)) and not isinstance(doc["wall_s"], bool)):
+    if not (doc.get("wall_s") is None or _number(doc["wall_s"])):
         raise ConfigError(folder, "stats.json wall_s", str(path), "must be a number")
     return doc
 
@@ -100,7 +112,7 @@ def combined_table(folders, fmt="md", metrics=DEFAULT_METRICS, docs=None) -> str
         lines += [" & ".join(esc(c) for c in r) + r" \\" for r in cells]
         return "\n".join(lines + [r"\hline", r"\end{tabular}"]) + "\n"
     lines = ["| " + " | ".join(titles) + " |", "|" + "|".join(["---"] * len(titles)) + "|"]
-    lines += ["| " + " | ".join(r) + " |" for r in cells]
+    lines += ["| " + " | ".join(md_cell(c) for c in r) + " |" for r in cells]
     return "\n".join(lines) + "\n"
 
 
@@ -118,20 +130,15 @@ def update_readme(readme: Path, table: str):
     write_text_atomically(readme, text)
 
 
-def _check_outputs(exps, jobs, results_dir: Path, quick, max_memory):
+def _check_outputs(exps, jobs, experiments_dir: Path, results_dir: Path, quick, max_memory):
     """Every output of every job and study, and every job's memory, checked before anything runs."""
     from tracklab.config import Experiment
     from tracklab.errors import ConfigError
-    from tracklab.output import check_results_folder, check_tuned_file
+    from tracklab.output import check_results_folder, check_results_parent, check_tuned_file
     from tracklab.sweep import check_sweep, parse_grid
     from tracklab.tune import selection, unwritable
 
-    readme = results_dir / "README.md"
-    if readme.exists() and not readme.is_file():
-        raise ConfigError(readme, "README.md", str(readme), "exists and is not a file")
-    if readme.is_file() and BEGIN not in readme.read_text(errors="replace"):
-        raise ConfigError(readme, "README.md", str(readme),
-                          f"exists without tracklab's table markers ({BEGIN}): choose another results folder (--out)")
+    check_results_parent(results_dir, experiments_dir)
     for exp, runs, out in jobs:
         check_results_folder(out, exp.path, "output folder")
         exp.check_memory(runs, max_memory)
@@ -170,7 +177,7 @@ def reproduce(experiments_dir="experiments", results_dir="results", quick=False,
     jobs = [(e, None if not quick else min(e.runs, 20), results_dir / e.name) for e in exps]
     if not quick:
         jobs += [(e, n, results_dir / f"{e.name}_{n}runs") for e in exps for n in e.also_runs]
-    _check_outputs(exps, jobs, results_dir, quick, max_memory)
+    _check_outputs(exps, jobs, folder, results_dir, quick, max_memory)
     for i, (exp, runs, out) in enumerate(jobs, start=1):
         log(f"[{i}/{len(jobs)}] {exp.name}: {runs or exp.runs} runs x {exp.steps} steps -> {out}")
         doc = exp.run(runs=runs, out=out, max_memory=max_memory)

@@ -28,7 +28,7 @@ import numpy as np
 from tracklab.engine import MonteCarloResult, Sums, make_chunk_fn, pcrlb
 from tracklab.metrics import statistics
 from tracklab.output import atomic_folder
-from tracklab.report import write_json
+from tracklab.report import md_cell, write_json
 
 GRID_RE = re.compile(r"^([a-z_]+)=([^:]+):([^:]+):(\d+)$")
 SCALABLE = ("q", "r", "lam", "alpha", "beta", "gamma", "rho", "b", "q_e", "r_e", "r_guide")
@@ -179,7 +179,7 @@ def _write_sweep(exp, doc, tmp, figures):
     header = [*(f"{n} x" for n in names), "filter", *metrics, "diverged"]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * len(header)) + "|"]
     for r in rows:
-        cells = [f"{v:.4g}" for v in r[:len(names)]] + [r[len(names)]] + [_cell(v) for v in r[len(names) + 1:-1]] + [str(int(r[-1]))]
+        cells = [f"{v:.4g}" for v in r[:len(names)]] + [md_cell(r[len(names)])] + [_cell(v) for v in r[len(names) + 1:-1]] + [str(int(r[-1]))]
         lines.append("| " + " | ".join(cells) + " |")
     (tmp / "table.md").write_text("\n".join(lines) + "\n")
     buf = io.StringIO()
@@ -198,6 +198,16 @@ def _write_sweep(exp, doc, tmp, figures):
     return rows
 
 
+def _log_edges(values):
+    """Cell edges for values on a log axis: geometric midpoints, the end cells as wide as their
+    neighbours (a single value: a factor 2 either side)."""
+    v = np.log(np.asarray(values, float))
+    if len(v) == 1:
+        return np.exp(v[0] + np.array([-np.log(2), np.log(2)]))
+    mid = 0.5 * (v[1:] + v[:-1])
+    return np.exp(np.concatenate([[v[0] - (mid[0] - v[0])], mid, [v[-1] + (v[-1] - mid[-1])]]))
+
+
 def _plot(doc, names, labels, folder):
     from tracklab.report import pyplot
 
@@ -207,6 +217,10 @@ def _plot(doc, names, labels, folder):
     unit = doc.get("units", ("m",))[0]
     for metric, title in (("rmse_pos", f"time-averaged position RMSE ({unit})"), ("nees", "average NEES"),
                           ("pred_err_rms", f"RMS one-step prediction error ({unit})")):
+        missing = any(p["stats"]["filters"][l]["summary"].get(metric) is None
+                      or not np.isfinite(p["stats"]["filters"][l]["summary"][metric]) for p in doc["points"] for l in labels)
+        if missing:
+            title += " — blank: no run without divergence"
         fig, axs = plt.subplots(1, len(labels), figsize=(4.2 * len(labels), 3.6), squeeze=False)
         for ax, l in zip(axs[0], labels):
             vals = np.array([p["stats"]["filters"][l]["summary"].get(metric) for p in doc["points"]], float)
@@ -217,7 +231,7 @@ def _plot(doc, names, labels, folder):
                 ax.grid(True, which="both", alpha=0.3)
             else:
                 grid = vals.reshape(len(axes_vals[0]), len(axes_vals[1]))
-                im = ax.pcolormesh(axes_vals[1], axes_vals[0], np.ma.log10(grid), shading="nearest")
+                im = ax.pcolormesh(_log_edges(axes_vals[1]), _log_edges(axes_vals[0]), np.ma.log10(grid))
                 ax.set_xscale("log")
                 ax.set_yscale("log")
                 ax.set_xlabel(f"{names[1]} scale factor")

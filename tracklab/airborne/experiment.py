@@ -225,9 +225,10 @@ class AirborneExperiment:
 
     def memory_bytes(self, runs=None) -> float:
         """A lower bound: a chunk's per-period outputs (error, NEES, pointing, range: 12 values a
-        run and period) and the per-period statistics on the host."""
-        chunk = min(self.chunk, runs or self.runs)
-        return chunk * self.steps * 12 * 8.0 + len(self.trackers) * self.steps * 16 * 8.0
+        run and period), the per-period statistics on the host, and every run's key (padded
+        copy and live mask included)."""
+        runs = runs or self.runs
+        return min(self.chunk, runs) * self.steps * 12 * 8.0 + len(self.trackers) * self.steps * 16 * 8.0 + runs * 24.0
 
     def check_memory(self, runs=None, limit=None):
         from tracklab.memory import check
@@ -328,7 +329,7 @@ SUMMARY_TABLES = [  # (key, title, format)
 
 def airborne_tables(doc) -> str:
     """Markdown: one table per quantity, a column per window; then settling times and lost lock."""
-    from tracklab.report import _fmt
+    from tracklab.report import _fmt, md_cell
 
     windows = doc["windows"]
     out = [f"# {doc['name']}: {doc['runs']} runs, {doc['steps']} filter periods of {doc['dt'] * 1e3:.0f} ms\n"]
@@ -336,14 +337,17 @@ def airborne_tables(doc) -> str:
         out.append(f"\n## {title}\n\n| tracker | kind | " + " | ".join(windows) + " |\n|---|---|" + "---|" * len(windows))
         for label, f in doc["filters"].items():
             cells = [_fmt(f["summary"].get(f"{key}[{w}]"), spec) for w in windows]
-            out.append(f"| {label} | {f['kind']} | " + " | ".join(cells) + " |")
+            out.append(f"| {md_cell(label)} | {f['kind']} | " + " | ".join(cells) + " |")
     events = sorted({k[7:-1] for f in doc["filters"].values() for k in f["summary"] if k.startswith("settle[")})
-    out.append("\n## Settling and lock\n\nSettling: seconds until the LOS-rate error RMS stays within 1.5× its "
-               "steady-window value for 1 s.\n\n| tracker | " + " | ".join(f"settle after {e} (s)" for e in events)
-               + " | lost lock (runs) |\n|---|" + "---|" * (len(events) + 1))
+    titles = ["tracker", *(f"settle after {e} (s)" for e in events), "lost lock (runs)"]
+    out.append("\n## Settling and lock\n\n"
+               + ("Settling: seconds until the LOS-rate error RMS stays within 1.5× its steady-window value for 1 s.\n\n"
+                  if events else "")
+               + "| " + " | ".join(titles) + " |\n|" + "---|" * len(titles))
     for label, f in doc["filters"].items():
-        cells = [_fmt(f["summary"].get(f"settle[{e}]"), "{:.2f}") for e in events]
-        out.append(f"| {label} | " + " | ".join(cells) + f" | {f['summary']['lost_lock']} |")
+        cells = [md_cell(label), *(_fmt(f["summary"].get(f"settle[{e}]"), "{:.2f}") for e in events),
+                 str(f["summary"]["lost_lock"])]
+        out.append("| " + " | ".join(cells) + " |")
     return "\n".join(out) + "\n"
 
 
@@ -416,7 +420,7 @@ def _read_windows(f, raw_report, duration, disturbance):
 def load_airborne_experiment(f: Path, raw: dict, section) -> AirborneExperiment:
     """Validate an airborne experiment file (``section``: config's typed table reader)."""
     from tracklab.airborne.engagement import Engagement
-    from tracklab.config import check_sections, experiment_header
+    from tracklab.config import MAX_RUN_STEPS, check_sections, experiment_header
 
     check_sections(f, raw, ("experiment", "tracker"), ("experiment", "airborne", "engagement", "noise", "acquisition",
                                                       "disturbance", "tracker", "report"), "an airborne experiment")
@@ -428,6 +432,8 @@ def load_airborne_experiment(f: Path, raw: dict, section) -> AirborneExperiment:
     average = ab.integer("average", 5, lo=1, hi=1000)
     if duration < 2 * sample_dt * average:
         raise ConfigError(f, "airborne.duration", duration, f"must hold at least two filter periods ({2 * sample_dt * average:g} s)")
+    if runs * duration / sample_dt > MAX_RUN_STEPS:
+        raise ConfigError(f, "experiment.runs", runs, f"runs x radar samples must be <= {MAX_RUN_STEPS:.0e}")
     if duration / sample_dt > MAX_TICKS:
         raise ConfigError(f, "airborne.sample_dt", sample_dt,
                           f"gives {duration / sample_dt:.3g} radar samples a run; at most {MAX_TICKS:.0e}: "

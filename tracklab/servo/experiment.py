@@ -163,10 +163,12 @@ class ServoExperiment:
         return self.frames * self.frame_ticks
 
     def memory_bytes(self, runs=None) -> float:
-        """A lower bound: a chunk's per-tick tracking errors (and their harmonic-fit residuals),
-        the host's time base and the least-squares fit's basis and pseudo-inverse (7 per tick)."""
-        chunk = min(CHUNK, runs or self.runs)
-        return chunk * self.ticks * 2 * 8.0 + self.ticks * 15 * 8.0
+        """The arrays a run holds: a chunk's per-tick values (the tracking error, its part after
+        ``settle``, the harmonic fit and its residual, the error returned and its host copy),
+        the host's time base and the fit's basis and pseudo-inverse (7 values a tick), and per
+        run its key and three statistics (kept, then joined)."""
+        runs = runs or self.runs
+        return min(CHUNK, runs) * self.ticks * 6 * 8.0 + self.ticks * 15 * 8.0 + runs * 56.0
 
     def check_memory(self, runs=None, limit=None):
         from tracklab.memory import check
@@ -379,7 +381,7 @@ def _check_latency(f, delay, frame_dt, mode):
 
 def load_servo_experiment(f: Path, raw: dict, section) -> ServoExperiment:
     """Validate a servo experiment file (``section``: config's typed table reader)."""
-    from tracklab.config import check_sections, experiment_header
+    from tracklab.config import MAX_RUN_STEPS, check_sections, experiment_header
     from tracklab.servo.loops import MODES
 
     check_sections(f, raw, ("experiment", "target", "case"), ("experiment", "servo", "target", "estimator", "case"),
@@ -398,6 +400,8 @@ def load_servo_experiment(f: Path, raw: dict, section) -> ServoExperiment:
     if frames * frame_ticks > MAX_TICKS:
         raise ConfigError(f, "servo.frames", frames,
                           f"x frame_ticks = {frames * frame_ticks:.3g} servo ticks a run; at most {MAX_TICKS:.0e}")
+    if runs * frames * frame_ticks > MAX_RUN_STEPS:
+        raise ConfigError(f, "experiment.runs", runs, f"runs x servo ticks must be <= {MAX_RUN_STEPS:.0e}")
     delay = sv.integer("delay", 2, lo=1, hi=100)
     if delay >= frames:
         raise ConfigError(f, "servo.delay", delay, f"must be fewer frames than the run's {frames}")
