@@ -193,6 +193,9 @@ def _resolve(out, file, field) -> Path:
     path = Path(os.path.abspath(out))
     if len(os.fsencode(str(path))) >= limit:
         raise ConfigError(file, field, value, f"the path is longer than this system's {limit - 1} bytes")
+    name_max = _name_max(Path("/"))
+    if any(len(os.fsencode(part)) > name_max for part in path.parts):
+        raise ConfigError(file, field, value, f"a name in it is longer than {name_max} bytes")
     try:
         for p in [*reversed(path.parents), path]:
             if os.path.lexists(p) and not os.path.exists(p):
