@@ -6,8 +6,6 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from tracklab.errors import ConfigError
 
 
@@ -84,7 +82,7 @@ def cmd_list(args) -> int:
     if not folder.is_dir():
         raise ConfigError("tracklab list", "--dir", str(folder), "must be a folder (of experiment files)")
     print(f"experiments ({folder}/):")
-    files = sorted(folder.glob("*.toml")) if folder.is_dir() else []
+    files = sorted(folder.glob("*.toml"))
     for p in files:
         print(f"  {p}")
     if not files:
@@ -109,7 +107,7 @@ def cmd_tune(args) -> int:
     import math
 
     from tracklab.config import load_experiment
-    from tracklab.studies import run_tune
+    from tracklab.studies import check_tune, run_tune
     from tracklab.tune import LOSSES, TUNABLE
 
     exp = load_experiment(args.experiment)
@@ -125,24 +123,11 @@ def cmd_tune(args) -> int:
     if not (args.lr > 0 and math.isfinite(args.lr)):
         raise ConfigError(args.experiment, "--lr", args.lr, "must be a finite number > 0")
     labels = [l.strip() for l in args.filters.split(",")] if args.filters else None
-    from tracklab.memory import check
-    from tracklab.output import check_tuned_file
-    from tracklab.tune import memory_bytes, selection, unwritable
-
     known = [fc.label for fc in exp.filters]
     if labels is not None and (not labels or any(l not in known for l in labels)):
         raise ConfigError(args.experiment, "--filters", args.filters, f"must name filter labels from: {', '.join(known)}")
-    chosen = selection(exp, names, labels)
-    if not chosen:
-        raise ConfigError(args.experiment, "--params", args.params, "no selected filter has any of these parameters")
-    why = unwritable(exp, chosen)
-    if why:
-        raise ConfigError(args.experiment, "--params", args.params, why)
     out = Path(args.out) if args.out else Path(args.experiment).with_name(Path(args.experiment).stem + "_tuned.toml")
-    check_tuned_file(out, args.experiment)
-    check(args.experiment, memory_bytes(exp, args.runs_per_step or min(exp.runs, 256)), args.max_memory,
-          "one tuning step (reverse mode keeps every run's filter states for every step)",
-          "fewer --runs-per-step, or fewer experiment.steps")
+    check_tune(exp, names, labels, out, args.runs_per_step, args.max_memory)
 
     run_tune(exp, names, steps=args.steps, lr=args.lr, loss=args.loss, runs_per_step=args.runs_per_step,
              labels=labels, out_toml=out, log=lambda line: print(line, flush=True), every=args.every)
@@ -152,7 +137,7 @@ def cmd_tune(args) -> int:
 def cmd_sweep(args) -> int:
     from tracklab.config import MAX_RUNS, load_experiment
     from tracklab.output import check_results_folder
-    from tracklab.sweep import check_sweep, grid_points, parse_grid, sweep, write_sweep
+    from tracklab.sweep import grid_points, parse_grid, sweep, write_sweep
 
     exp = load_experiment(args.experiment)
     _tracking(exp, "sweep")
@@ -168,13 +153,12 @@ def cmd_sweep(args) -> int:
         raise ConfigError(args.experiment, "--runs", args.runs, f"must be <= {MAX_RUNS}")
     out = Path(args.out) if args.out else Path("results") / f"{exp.name}_sweep"
     check_results_folder(out, args.experiment)
-    check_sweep(exp, axes, args.runs, args.max_memory)
 
     def progress(done, total):
         if sys.stderr.isatty() or done == total:
             print(f"\r{exp.name} sweep: {done}/{total} calls", end="\n" if done == total else "", file=sys.stderr, flush=True)
 
-    doc = sweep(exp, axes, runs=args.runs, progress=progress)
+    doc = sweep(exp, axes, runs=args.runs, progress=progress, max_memory=args.max_memory)  # checks grid and memory first
     n = grid_points(axes)
     print(f"# {exp.name}: {n} grid points x {doc['runs']} runs, {doc['wall_s']:.1f} s")
     write_sweep(exp, doc, out, figures=not args.no_figures)

@@ -137,6 +137,12 @@ def is_results_document(path: Path) -> bool:
     return HEADER_KEY in doc or ("experiment" in doc and ("filters" in doc or "points" in doc))
 
 
+def _not_results_files(folder: Path, entries) -> list[str]:
+    """The entries that are not files of the names tracklab writes into a results folder."""
+    return [e for e in entries
+            if not ((e in RESULTS_FILES or e.endswith(".png")) and (folder / e).is_file() and not (folder / e).is_symlink())]
+
+
 def foreign_entries(folder: Path) -> list[str]:
     """What in an existing folder tracklab did not write there (empty for a results folder)."""
     entries = sorted(os.listdir(folder))
@@ -145,8 +151,7 @@ def foreign_entries(folder: Path) -> list[str]:
     docs = [e for e in entries if e in RESULTS_DOCUMENTS]
     if not docs or not all(is_results_document(folder / d) for d in docs):
         return entries
-    return [e for e in entries
-            if not ((e in RESULTS_FILES or e.endswith(".png")) and (folder / e).is_file() and not (folder / e).is_symlink())]
+    return _not_results_files(folder, entries)
 
 
 def _inside(a: Path, b: Path) -> bool:
@@ -318,11 +323,10 @@ def _written_by_tracklab(path: Path) -> bool:
     nothing but results files (possibly cut short), or a tuned file or results README."""
     if path.is_symlink():
         return False
-    if path.is_dir():
+    if path.is_dir():  # possibly cut short: no document yet, or an empty one
         entries = os.listdir(path)
-        docs = [e for e in entries if e in RESULTS_DOCUMENTS]
-        return (all((e in RESULTS_FILES or e.endswith(".png")) and (path / e).is_file() for e in entries)
-                and all(is_results_document(path / d) or (path / d).stat().st_size == 0 for d in docs))
+        return not _not_results_files(path, entries) and all(
+            is_results_document(path / d) or (path / d).stat().st_size == 0 for d in entries if d in RESULTS_DOCUMENTS)
     with open(path, "rb") as fh:
         head = fh.read(1 << 16)
     return not head or head.startswith(TUNED_HEADER.encode()) or TABLE_BEGIN.encode() in head

@@ -144,8 +144,8 @@ def stats_document(exp, res):
         "filters": {k: dict(f, series=_decimate(f["series"], stride)) for k, f in st["filters"].items()},
     }
     return {
-        "tracklab_version": __version__,  # first: the header of a results folder (tracklab.output)
         "name": exp.name,
+        "tracklab_version": __version__,
         "runs": res.runs,
         "steps": res.steps,
         "dt": res.dt,

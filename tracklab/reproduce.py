@@ -134,9 +134,9 @@ def _check_outputs(exps, jobs, experiments_dir: Path, results_dir: Path, quick, 
     """Every output of every job and study, and every job's memory, checked before anything runs."""
     from tracklab.config import Experiment
     from tracklab.errors import ConfigError
-    from tracklab.output import check_results_folder, check_results_parent, check_tuned_file
+    from tracklab.output import check_results_folder, check_results_parent
+    from tracklab.studies import check_tune
     from tracklab.sweep import check_sweep, parse_grid
-    from tracklab.tune import selection, unwritable
 
     check_results_parent(results_dir, experiments_dir)
     for exp, runs, out in jobs:
@@ -148,10 +148,8 @@ def _check_outputs(exps, jobs, experiments_dir: Path, results_dir: Path, quick, 
             if not isinstance(exp, Experiment):
                 raise ConfigError(exp.path, "[[study]]", study.kind, "studies need [[filter]] tables")
             if study.kind == "tune":
-                why = unwritable(exp, selection(exp, study.params, study.filters))
-                if why:
-                    raise ConfigError(exp.path, "study.params", list(study.params), why)
-                check_tuned_file(base.with_name(base.name + "_tuned.toml"), exp.path, "study.out")
+                check_tune(exp, list(study.params), study.filters, base.with_name(base.name + "_tuned.toml"),
+                           min(study.runs_per_step, 4) if quick else study.runs_per_step, max_memory, "study.params")
                 check_results_folder(base.with_name(base.name + "_tuned"), exp.path, "study.out")
             else:
                 check_results_folder(base, exp.path, "study.out")

@@ -115,6 +115,26 @@ def parse_studies(f, tables, section_cls, exp_filters) -> list:
     return studies
 
 
+def check_tune(exp, names, labels, out_toml, runs_per_step=None, max_memory=None, field="--params"):
+    """Everything a tuning needs, checked before it compiles (ConfigError in one line): a selected
+    filter with the parameters, tuned values that can be written back, the output file, memory."""
+    from tracklab.errors import ConfigError
+    from tracklab.memory import check
+    from tracklab.output import check_tuned_file
+    from tracklab.tune import memory_bytes, selection, unwritable
+
+    chosen = selection(exp, names, labels)
+    if not chosen:
+        raise ConfigError(exp.path, field, ",".join(names), "no selected filter has any of these parameters")
+    why = unwritable(exp, chosen)
+    if why:
+        raise ConfigError(exp.path, field, ",".join(names), why)
+    check_tuned_file(out_toml, exp.path)
+    check(exp.path, memory_bytes(exp, runs_per_step or min(exp.runs, 256)), max_memory,
+          "one tuning step (reverse mode keeps every run's filter states for every step)",
+          "fewer --runs-per-step, or fewer experiment.steps")
+
+
 def run_tune(exp, names, *, steps, lr, loss, runs_per_step, labels, out_toml: Path, log=print, every=10,
              eval_runs=None):
     """Tune, log progress lines, write the tuned experiment file atomically; return the TuneResult."""

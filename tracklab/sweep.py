@@ -28,7 +28,7 @@ import numpy as np
 from tracklab.engine import MonteCarloResult, Sums, make_chunk_fn, pcrlb
 from tracklab.metrics import statistics
 from tracklab.output import atomic_folder
-from tracklab.report import md_cell, write_json
+from tracklab.report import _fmt, md_cell, write_json
 
 GRID_RE = re.compile(r"^([a-z_]+)=([^:]+):([^:]+):(\d+)$")
 SCALABLE = ("q", "r", "lam", "alpha", "beta", "gamma", "rho", "b", "q_e", "r_e", "r_guide")
@@ -57,15 +57,22 @@ def grid_points(axes: list[Axis]) -> int:
     return int(np.prod([len(a.values) for a in axes], dtype=float))
 
 
+def _call_shape(exp, points, runs, chunk=None, block_points=None):
+    """(runs, grid points) of one call: memory per call grows with grid points × runs × steps,
+    kept near 10⁶ run-steps."""
+    budget = 1_000_000
+    chunk = int(min(chunk or exp.chunk or 1000, runs, max(16, budget // exp.steps)))
+    return chunk, int(block_points or max(1, min(points, budget // (chunk * exp.steps))))
+
+
 def memory_bytes(exp, axes: list[Axis], runs=None) -> float:
     """A lower bound: every grid point's per-step statistics of every filter (kept until the
     sweep is written) and its PCRLB information, and one call's random draws."""
     P = grid_points(axes)
-    runs = runs or exp.runs
-    chunk = min(exp.chunk or 1000, runs, max(16, 1_000_000 // exp.steps))
+    chunk, block = _call_shape(exp, P, runs or exp.runs)
     width = 2 * exp.dim + exp.sensor.m
     per_point = exp.steps * (len(exp.filters) * 64 + exp.dim**2) * 8.0
-    return P * per_point + min(P, max(1, 1_000_000 // (chunk * exp.steps))) * chunk * exp.steps * width * 4.0
+    return P * per_point + block * chunk * exp.steps * width * 4.0
 
 
 def check_sweep(exp, axes: list[Axis], runs=None, limit=None):
@@ -95,10 +102,7 @@ def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=
     points = list(itertools.product(*[a.values for a in axes]))
     names = [a.name for a in axes]
     P = len(points)
-    # memory per call grows with grid points × runs × steps: keep it near 10⁶ run-steps
-    budget = 1_000_000
-    chunk = int(min(chunk or exp.chunk or 1000, runs, max(16, budget // exp.steps)))
-    block = int(block_points or max(1, min(P, budget // (chunk * exp.steps))))  # grid points per call
+    chunk, block = _call_shape(exp, P, runs, chunk, block_points)
 
     def point_params(f):
         factors = dict(zip(names, f))
@@ -156,11 +160,6 @@ def write_sweep(exp, doc, out, figures=True):
         return _write_sweep(exp, doc, tmp, figures)
 
 
-def _cell(v):
-    """A table cell: a statistic with no healthy run behind it is "—", never nan."""
-    return f"{v:.4g}" if v is not None and np.isfinite(v) else "—"
-
-
 def _csv(v):
     return v if v is not None and np.isfinite(v) else ""
 
@@ -179,7 +178,7 @@ def _write_sweep(exp, doc, tmp, figures):
     header = [*(f"{n} x" for n in names), "filter", *metrics, "diverged"]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * len(header)) + "|"]
     for r in rows:
-        cells = [f"{v:.4g}" for v in r[:len(names)]] + [md_cell(r[len(names)])] + [_cell(v) for v in r[len(names) + 1:-1]] + [str(int(r[-1]))]
+        cells = [f"{v:.4g}" for v in r[:len(names)]] + [md_cell(r[len(names)])] + [_fmt(v, "{:.4g}") for v in r[len(names) + 1:-1]] + [str(int(r[-1]))]
         lines.append("| " + " | ".join(cells) + " |")
     (tmp / "table.md").write_text("\n".join(lines) + "\n")
     buf = io.StringIO()
@@ -217,14 +216,14 @@ def _plot(doc, names, labels, folder):
     unit = doc.get("units", ("m",))[0]
     for metric, title in (("rmse_pos", f"time-averaged position RMSE ({unit})"), ("nees", "average NEES"),
                           ("pred_err_rms", f"RMS one-step prediction error ({unit})")):
-        missing = any(p["stats"]["filters"][l]["summary"].get(metric) is None
-                      or not np.isfinite(p["stats"]["filters"][l]["summary"][metric]) for p in doc["points"] for l in labels)
-        if missing:
+        # None (no healthy run at a point) -> NaN -> masked: left blank
+        values = {l: np.ma.masked_invalid(np.array([p["stats"]["filters"][l]["summary"].get(metric)
+                                                    for p in doc["points"]], float)) for l in labels}
+        if any(np.ma.is_masked(v) for v in values.values()):
             title += " — blank: no run without divergence"
         fig, axs = plt.subplots(1, len(labels), figsize=(4.2 * len(labels), 3.6), squeeze=False)
         for ax, l in zip(axs[0], labels):
-            vals = np.array([p["stats"]["filters"][l]["summary"].get(metric) for p in doc["points"]], float)
-            vals = np.ma.masked_invalid(vals)  # no healthy run at a point: left blank
+            vals = values[l]
             if len(names) == 1:
                 ax.loglog(axes_vals[0], vals, "o-")
                 ax.set_xlabel(f"{names[0]} scale factor")

@@ -142,8 +142,8 @@ def unwritable(exp, chosen: dict) -> str | None:
 def memory_bytes(exp, runs_per_step, eval_runs=None) -> float:
     """A lower bound: the filter states reverse mode keeps for every run and step of a batch,
     and the held-out evaluation's random draws."""
-    state = sum((3 if fc.model == "ca" else 2) * exp.dim * (1 + (3 if fc.model == "ca" else 2) * exp.dim)
-                for fc in exp.filters)
+    n = [(3 if fc.model == "ca" else 2) * exp.dim for fc in exp.filters]  # each filter's state dimension
+    state = sum(k * (1 + k) for k in n)  # its mean and covariance
     n_eval = eval_runs or min(exp.runs, 2000)
     width = 2 * exp.dim + exp.sensor.m
     return runs_per_step * exp.steps * state * 8.0 + min(n_eval, 1000) * exp.steps * width * 4.0

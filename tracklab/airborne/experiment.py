@@ -277,7 +277,7 @@ class AirborneExperiment:
                 "nees": np.where(s["n_nees"] > 0, s["sum_nees"] / np.maximum(s["n_nees"], 1.0), np.nan),
             }
             summary = {"runs": int(runs), "diverged": int(s["lost"]), "lost_lock": int(s["lost"])}
-            summary["healthy_runs"] = int(np.min(s["n"])) if len(s["n"]) else 0
+            summary["healthy_runs"] = int(np.min(s["n"]))
             for name, m in masks.items():
                 for key in ("pointing", "pointing_estimate", "los_rate", "range", "range_rate"):
                     summary[f"{key}[{name}]"] = float(np.sqrt(np.mean(series[key][m] ** 2)))

@@ -461,8 +461,9 @@ def load_servo_experiment(f: Path, raw: dict, section) -> ServoExperiment:
             raise ConfigError(f, f"case[{i}].label", label, "must be unique among the cases")
         case_labels.add(label)
         cs.check_unknown()
-        if mode in CAMERA_LOOPS:
-            _check_latency(f, delay, frame_dt, mode)
         cases.append(Case(label, mode, est))
+    camera_loops = [c.mode for c in cases if c.mode in CAMERA_LOOPS]
+    if camera_loops:
+        _check_latency(f, delay, frame_dt, camera_loops[0])
     return ServoExperiment(f, name, runs, seed, frames, frame_dt, frame_ticks, delay, noise, settle, accel_ff, target,
                            estimators, cases, raw, precision=precision)
