@@ -252,6 +252,9 @@ def test_stale_temporaries_of_dead_processes_are_cleaned_and_a_lost_folder_resto
     out = tmp_path / "res"
     make_results(tmp_path / f".res.old-{pid}", "kept")  # a kill fell between the two renames
     make_results(tmp_path / f".res.tmp-{pid}", "half")
+    cut = tmp_path / f".res.tmp-{dead_pid()}"  # killed while writing stats.json: the header, then nothing
+    cut.mkdir()
+    (cut / "stats.json").write_text('{"tracklab_version":"0.1.0","na')
     make_results(tmp_path / f".other.tmp-{pid}", "not ours")  # another output's: left alone
     live = tmp_path / f".res.tmp-{os.getppid()}"  # a live process's: left alone
     make_results(live, "live")

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from tracklab.errors import ConfigError
+from tracklab.output import raise_if_interrupted
 
 
 def _positive_int(s):
@@ -60,6 +61,7 @@ def cmd_run(args) -> int:
     out = Path(args.out) if args.out else Path("results") / exp.name
 
     def progress(done, total):
+        raise_if_interrupted()  # after each chunk: a Ctrl-C swallowed inside a callback still stops the run
         if sys.stderr.isatty() or done == total:
             print(f"\r{exp.name}: {done}/{total} runs", end="\n" if done == total else "", file=sys.stderr, flush=True)
 
@@ -130,7 +132,7 @@ def cmd_tune(args) -> int:
     check_tune(exp, names, labels, out, args.runs_per_step, args.max_memory)
 
     run_tune(exp, names, steps=args.steps, lr=args.lr, loss=args.loss, runs_per_step=args.runs_per_step,
-             labels=labels, out_toml=out, log=lambda line: print(line, flush=True), every=args.every)
+             labels=labels, out_toml=out, log=lambda line: (raise_if_interrupted(), print(line, flush=True)), every=args.every)
     return 0
 
 
@@ -155,6 +157,7 @@ def cmd_sweep(args) -> int:
     check_results_folder(out, args.experiment)
 
     def progress(done, total):
+        raise_if_interrupted()
         if sys.stderr.isatty() or done == total:
             print(f"\r{exp.name} sweep: {done}/{total} calls", end="\n" if done == total else "", file=sys.stderr, flush=True)
 

@@ -83,7 +83,9 @@ def written() -> list[Path]:
     return list(_written)
 
 
-def _raise_if_interrupted():
+def raise_if_interrupted():
+    """KeyboardInterrupt if a SIGINT was recorded (its own may have been swallowed): long loops
+    call this between chunks so that Ctrl-C stops them."""
     if _interrupted:
         raise KeyboardInterrupt
 
@@ -141,6 +143,13 @@ def _not_results_files(folder: Path, entries) -> list[str]:
     """The entries that are not files of the names tracklab writes into a results folder."""
     return [e for e in entries
             if not ((e in RESULTS_FILES or e.endswith(".png")) and (folder / e).is_file() and not (folder / e).is_symlink())]
+
+
+def _results_document_begun(path: Path) -> bool:
+    """A results document, possibly cut short while written: empty, or starting with the header."""
+    with open(path, "rb") as fh:
+        head = fh.read(len(HEADER_KEY) + 2)
+    return not head or head == b'{"' + HEADER_KEY.encode() or is_results_document(path)
 
 
 def foreign_entries(folder: Path) -> list[str]:
@@ -325,8 +334,8 @@ def _written_by_tracklab(path: Path) -> bool:
         return False
     if path.is_dir():  # possibly cut short: no document yet, or an empty one
         entries = os.listdir(path)
-        return not _not_results_files(path, entries) and all(
-            is_results_document(path / d) or (path / d).stat().st_size == 0 for d in entries if d in RESULTS_DOCUMENTS)
+        return not _not_results_files(path, entries) and all(_results_document_begun(path / d)
+                                                             for d in entries if d in RESULTS_DOCUMENTS)
     with open(path, "rb") as fh:
         head = fh.read(1 << 16)
     return not head or head.startswith(TUNED_HEADER.encode()) or TABLE_BEGIN.encode() in head
@@ -383,7 +392,7 @@ def atomic_folder(out, file=None, field="--out"):
     tmp.mkdir()
     try:
         yield tmp
-        _raise_if_interrupted()
+        raise_if_interrupted()
         if os.path.isdir(out) and foreign_entries(out):  # someone else's folder appeared meanwhile
             raise ConfigError(file, field, str(out), "became a folder tracklab did not write while it ran")
         with _sigint_blocked():
@@ -405,7 +414,7 @@ def write_text_atomically(path, text: str, verify=None):
         tmp.write_text(text)
         if verify is not None:
             verify(tmp)
-        _raise_if_interrupted()
+        raise_if_interrupted()
         with _sigint_blocked():
             os.replace(tmp, path)
             _written.append(path)
