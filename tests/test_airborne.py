@@ -218,6 +218,7 @@ EXPERIMENT = """
 name = "airborne_small"
 runs = 12
 seed = 3
+chunk = 12
 
 [airborne]
 duration = 8.0

@@ -389,14 +389,16 @@ def test_airborne_tracker_that_lost_lock_everywhere_shows_missing(tmp_path):
 
 def test_servo_case_statistics_leave_diverged_runs_out():
     from tracklab.servo.experiment import case_summary
+    from tracklab.servo.world import case_sums
 
-    mx = np.array([0.1, 0.2, np.inf, 1e20])  # deg: two healthy runs, one overflowed, one lost the target
-    rnd = np.array([0.001, 0.003, np.nan, 1e19])
-    s = case_summary(mx, rnd, np.array([0.5, 0.7, 1.0, 1.0]))
+    mx = np.array([0.1, 0.2, np.inf, 1e20, 0.05])  # deg: two healthy runs, one overflowed, one lost the target
+    rnd = np.array([0.001, 0.003, np.nan, 1e19, 0.002])
+    live = np.array([True, True, True, True, False])  # the last run is padding
+    s = case_summary(case_sums(mx, rnd, np.array([0.5, 0.7, 1.0, 1.0, 9.0]), live), 4, True)
     assert s["diverged"] == 2 and s["runs"] == 4
     assert s["max_track_err"] == pytest.approx(0.15 * 60) and s["max_track_err_worst"] == pytest.approx(0.2 * 60)
     assert s["random_err"] == pytest.approx(0.002 * 3600) and s["max_rate_err"] == pytest.approx(0.6)
-    none = case_summary(np.array([np.nan, 400.0]), np.array([1.0, 1.0]))
+    none = case_summary(case_sums(np.array([np.nan, 400.0]), np.array([1.0, 1.0]), None, np.ones(2, bool)), 2, False)
     assert none["diverged"] == 2 and all(np.isnan(none[k]) for k in ("max_track_err", "random_err", "max_rate_err"))
 
 
@@ -405,11 +407,12 @@ def test_sweep_table_shows_missing_not_nan(tmp_path):
 
     summary = lambda v: {"rmse_pos": v, "rmse_vel": v, "pred_err_rms": v, "nees": v, "nees_in_bounds": v,
                          "diverged": 0 if np.isfinite(v) else 6}
-    points = [{"factors": {"q": f}, "stats": {"filters": {"KF": {"kind": "kf", "summary": summary(v)}}}}
+    points = [{"values": {"q": f}, "stats": {"filters": {"KF": {"kind": "kf", "summary": summary(v)}}}}
               for f, v in ((0.5, 3.0), (2.0, float("nan")))]
     exp = SimpleNamespace(name="s", window=(1, 6), raw={}, path=tmp_path / "s.toml")
-    write_sweep(exp, {"axes": {"q": [0.5, 2.0]}, "points": points, "wall_s": 1.0, "runs": 6, "units": ["m"]},
-                tmp_path / "sw", figures=True)
+    write_sweep(exp, {"axes": {"q": [0.5, 2.0]}, "titles": {"q": "q scale factor"}, "log": {"q": True},
+                      "metrics": [["rmse_pos", "position RMSE (m)"]], "points": points, "wall_s": 1.0,
+                      "compile_s": 0.5, "runs": 6, "units": ["m"]}, tmp_path / "sw", figures=True)
     md = (tmp_path / "sw" / "table.md").read_text()
     assert "nan" not in md.lower() and "| 2 | KF | — | — | — | — | — | 6 |" in md
     assert "nan" not in (tmp_path / "sw" / "table.csv").read_text().lower()
@@ -475,10 +478,12 @@ def test_servo_latency_inside_the_margin_and_on_axis_are_accepted(tmp_path):
 
 
 @pytest.mark.parametrize("args, expect", [
-    (("sweep", "air.toml", "--grid", "q=1:2:2"), "[airborne]"),
-    (("tune", "air.toml", "--params", "q"), "[airborne]"),
-    (("sweep", "servo.toml", "--grid", "q=1:2:2"), "[servo]"),
-    (("tune", "servo.toml", "--params", "q"), "[servo]"),
+    (("sweep", "air.toml", "--grid", "lam=1:2:2"), "no filter of this experiment has the parameter 'lam'"),
+    (("tune", "air.toml", "--params", "q"), "must name parameters among q_scale, r_scale, lam"),
+    (("tune", "air.toml", "--params", "lam", "--loss", "mse_pos"), "must be one of pointing, los_rate"),
+    (("sweep", "servo.toml", "--grid", "servo.frames=100:200:2"), "changes what the program is compiled for"),
+    (("sweep", "servo.toml", "--grid", "q=1:2:2"), "no filter of this experiment has the parameter 'q'"),
+    (("tune", "servo.toml", "--params", "q"), "no selected filter"),
     (("sweep", "small.toml", "--grid", "rho=0.5:1:2"), "no filter of this experiment has the parameter 'rho'"),
     (("tune", "small.toml", "--params", "rho"), "no selected filter"),
     (("tune", "small.toml", "--params", "q", "--filters", "nope"), "--filters"),

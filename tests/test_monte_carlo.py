@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab.config import load_experiment
-from tracklab.engine import FilterSpec, monte_carlo
+from tracklab.worlds.tracking import FilterSpec, monte_carlo
 from tracklab.filters import Filter, build, noise_params
 from tracklab.metrics import average_chi2_interval, chi2_quantile, statistics
 from tracklab.models import cv

@@ -9,7 +9,7 @@ import numpy as np
 
 import tracklab
 from tracklab.config import load_experiment
-from tracklab.engine import simulate_runs
+from tracklab.worlds.tracking import simulate_runs
 from tracklab.metrics import statistics
 from tracklab.scenarios import MountFrame, Overflight
 
@@ -66,7 +66,7 @@ def test_windowed_prediction_errors_equal_those_of_the_runs_filtered_one_by_one(
     runs, T = exp.runs, exp.steps
     idx = jnp.arange(runs, dtype=jnp.uint32)
     P0 = exp.prior_covariance()
-    truth, z, prior = simulate_runs(exp.scenario, exp.sensor, jnp.linalg.cholesky(jnp.asarray(P0)),
+    truth, z, prior = simulate_runs(exp.scenario, exp.sensor, P0,
                                     jax.random.key(exp.seed), idx)
     t = exp.dt * np.arange(1, T + 1)
     masks = {"": (np.arange(1, T + 1) >= 10), "[6-10 s]": (t >= 6.0 - 1e-9) & (t <= 10.0 + 1e-9)}

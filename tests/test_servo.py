@@ -116,6 +116,7 @@ def test_servo_experiment_file_runs_and_reports_the_paper_metrics(tmp_path):
 [experiment]
 name = "servo"
 runs = 3
+chunk = 3
 
 [servo]
 frames = 1200
@@ -155,7 +156,7 @@ estimator = "perfect"
 def test_cone_target_rates():
     """The rig's azimuth: rates from autodiff agree with finite differences; peak rate and acceleration
     near the paper's 24.2 °/s and 30.7 °/s²."""
-    from tracklab.servo.experiment import cone_target
+    from tracklab.servo.world import cone_target
 
     f = jax.jit(jax.vmap(cone_target(13.5, 26.0, 4.5)))
     t = np.linspace(0, 4.5, 4501)

@@ -47,7 +47,7 @@ def test_sweep_point_equals_a_separate_run_with_scaled_parameters(tmp_path):
     doc = sweep(exp, [parse_grid("q=0.01:100:3"), parse_grid("r=0.2:5:2")], chunk=40, block_points=4)
     assert len(doc["points"]) == 6
     for point in (doc["points"][0], doc["points"][5]):
-        f = point["factors"]
+        f = point["values"]
         one = load_experiment(path)
         for fc in one.filters:
             fc.params["q"] = fc.params["q"] * f["q"]
@@ -58,7 +58,7 @@ def test_sweep_point_equals_a_separate_run_with_scaled_parameters(tmp_path):
             for k in ("rmse_pos", "rmse_vel", "nees", "max_err_pos", "nis"):
                 np.testing.assert_allclose(a[k], b[k], rtol=1e-9, err_msg=f"{label} {k} at {f}")
     # mismatch shows: Q 100x too small is over-confident, R 5x too large under-confident
-    nees = {tuple(p["factors"].values()): p["stats"]["filters"]["EKF"]["summary"]["nees"] for p in doc["points"]}
+    nees = {tuple(p["values"].values()): p["stats"]["filters"]["EKF"]["summary"]["nees"] for p in doc["points"]}
     assert nees[(0.01, 0.2)] > 4.5 and nees[(100.0, 5.0)] < 3.0
 
 

@@ -31,7 +31,8 @@ import jax  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 
 from tracklab import filters  # noqa: E402
-from tracklab.engine import FilterResult, FilterSpec, MonteCarloResult, monte_carlo, run_filter  # noqa: E402
+from tracklab.filtering import FilterResult, run_filter  # noqa: E402
+from tracklab.worlds.tracking import FilterSpec, MonteCarloResult, monte_carlo  # noqa: E402
 
 __version__ = "0.1.0"
 

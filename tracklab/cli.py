@@ -39,16 +39,6 @@ def _size(s):
         raise argparse.ArgumentTypeError(f"{s!r} {e}") from None
 
 
-def _tracking(exp, command):
-    """Refuse, in one line, an airborne or servo file for a command that needs [[filter]] tables."""
-    from tracklab.config import Experiment
-
-    if not isinstance(exp, Experiment):
-        kind = "an [airborne]" if "airborne" in exp.raw else "a [servo]"
-        raise ConfigError(exp.path, "file", kind[kind.index("["):], f"tracklab {command} works on files with "
-                          f"[[filter]] tables; {kind} experiment is run with tracklab run")
-
-
 def cmd_run(args) -> int:
     from tracklab.config import MAX_RUNS, load_experiment
     from tracklab.report import markdown_table
@@ -68,7 +58,7 @@ def cmd_run(args) -> int:
     doc = exp.run(runs=runs, seed=args.seed, out=out, progress=progress, figures=not args.no_figures,
                   precision="float32" if args.float32 else None, max_memory=args.max_memory)
     print(f"# {exp.name}: {runs} runs x {exp.steps} steps, window {exp.window[0]}-{exp.window[1]}, "
-          f"{doc['wall_s']:.1f} s (compile {doc['compile_s']:.1f} s)")
+          f"{doc['wall_s']:.1f} s wall, {doc['compile_s']:.1f} s of it compiling or loading the program")
     print(markdown_table(doc), end="")
     print(f"results written to {out}/")
     return 0
@@ -76,7 +66,7 @@ def cmd_run(args) -> int:
 
 def cmd_list(args) -> int:
     from tracklab.airborne.experiment import TRACKERS
-    from tracklab.filters import FILTER_KINDS
+    from tracklab.filters.registry import KINDS
     from tracklab.scenarios import SCENARIO_KINDS
     from tracklab.sensors import SENSOR_KINDS
 
@@ -89,9 +79,10 @@ def cmd_list(args) -> int:
         print(f"  {p}")
     if not files:
         print("  (none)")
-    print("filter kinds:")
-    for k, (desc, sensors) in FILTER_KINDS.items():
-        print(f"  {k:<16} {desc} [sensors: {', '.join(sensors)}]")
+    print("filter kinds ([[filter]] of a file; parameters [unit] = default):")
+    for k in KINDS.values():
+        print(f"  {k.name:<16} {k.doc} [sensors: {', '.join(k.accepts)}]")
+        print(f"  {'':<16}   {', '.join(p.describe(n) for n, p in k.params.items())}")
     print("sensors:")
     for k, desc in SENSOR_KINDS.items():
         print(f"  {k:<16} {desc}")
@@ -109,23 +100,29 @@ def cmd_tune(args) -> int:
     import math
 
     from tracklab.config import load_experiment
+    from tracklab.filters.registry import TUNABLE, declarations
     from tracklab.studies import check_tune, run_tune
-    from tracklab.tune import LOSSES, TUNABLE
+    from tracklab.tune import LOSSES
 
     exp = load_experiment(args.experiment)
-    _tracking(exp, "tune")
     names = [n.strip() for n in args.params.split(",") if n.strip()]
-    bad = [n for n in names if n not in TUNABLE]
+    closed = hasattr(exp, "tune_names")  # an airborne or servo file
+    tunable = exp.tune_names if closed else TUNABLE
+    bad = [n for n in names if n not in tunable]
     if not names or bad:
-        raise ConfigError(args.experiment, "--params", args.params, f"must name parameters among {', '.join(TUNABLE)}")
-    if "w0" in names:
-        raise ConfigError(args.experiment, "--params", args.params, "w0 (network weights) is tuned through the Python API, tracklab.tune.tune; a file holds no weights")
-    if args.loss not in LOSSES:
-        raise ConfigError(args.experiment, "--loss", args.loss, f"must be one of {', '.join(LOSSES)}")
+        raise ConfigError(args.experiment, "--params", args.params, f"must name parameters among {', '.join(tunable)}")
+    unfiled = None if closed else next((n for n in names if all(p.write is None for p in declarations(n))), None)
+    if unfiled:
+        raise ConfigError(args.experiment, "--params", args.params, f"{unfiled} ({declarations(unfiled)[0].doc}) is tuned "
+                          "through the Python API, tracklab.tune.tune; a file holds none")
+    losses = list(exp.tune_losses) if closed else list(LOSSES)
+    args.loss = args.loss or losses[0]
+    if args.loss not in losses:
+        raise ConfigError(args.experiment, "--loss", args.loss, f"must be one of {', '.join(losses)}")
     if not (args.lr > 0 and math.isfinite(args.lr)):
         raise ConfigError(args.experiment, "--lr", args.lr, "must be a finite number > 0")
     labels = [l.strip() for l in args.filters.split(",")] if args.filters else None
-    known = [fc.label for fc in exp.filters]
+    known = [e.label for e in getattr(exp, "filters", None) or getattr(exp, "trackers", None) or exp.estimators]
     if labels is not None and (not labels or any(l not in known for l in labels)):
         raise ConfigError(args.experiment, "--filters", args.filters, f"must name filter labels from: {', '.join(known)}")
     out = Path(args.out) if args.out else Path(args.experiment).with_name(Path(args.experiment).stem + "_tuned.toml")
@@ -142,15 +139,12 @@ def cmd_sweep(args) -> int:
     from tracklab.sweep import grid_points, parse_grid, sweep, write_sweep
 
     exp = load_experiment(args.experiment)
-    _tracking(exp, "sweep")
     axes = []
     for g in args.grid:
         try:
             axes.append(parse_grid(g))
         except ValueError as e:
             raise ConfigError(args.experiment, "--grid", g, str(e)) from None
-    if len({a.name for a in axes}) != len(axes):
-        raise ConfigError(args.experiment, "--grid", " ".join(args.grid), "each parameter may appear once")
     if args.runs is not None and args.runs > MAX_RUNS:
         raise ConfigError(args.experiment, "--runs", args.runs, f"must be <= {MAX_RUNS}")
     out = Path(args.out) if args.out else Path("results") / f"{exp.name}_sweep"
@@ -163,7 +157,8 @@ def cmd_sweep(args) -> int:
 
     doc = sweep(exp, axes, runs=args.runs, progress=progress, max_memory=args.max_memory)  # checks grid and memory first
     n = grid_points(axes)
-    print(f"# {exp.name}: {n} grid points x {doc['runs']} runs, {doc['wall_s']:.1f} s")
+    print(f"# {exp.name}: {n} grid points x {doc['runs']} runs, {doc['wall_s']:.1f} s wall, "
+          f"{doc['compile_s']:.1f} s of it compiling or loading the program")
     write_sweep(exp, doc, out, figures=not args.no_figures)
     print((out / "table.md").read_text(), end="")
     print(f"sweep written to {out}/")
@@ -202,7 +197,10 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser():
-    p = _Parser(prog="tracklab", description="Monte-Carlo evaluation of tracking filters")
+    from tracklab.filters.registry import KINDS, SCALABLE, TUNABLE
+
+    p = _Parser(prog="tracklab", description="Monte-Carlo evaluation of tracking filters; filter kinds: "
+                + ", ".join(KINDS) + " (tracklab list describes them)")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
     r = sub.add_parser("run", help="run an experiment file and write its results folder")
     r.add_argument("experiment")
@@ -215,19 +213,23 @@ def build_parser():
     r.set_defaults(func=cmd_run)
     tu = sub.add_parser("tune", help="tune filter parameters by gradient descent through the Monte-Carlo runs")
     tu.add_argument("experiment")
-    tu.add_argument("--params", required=True, help="comma-separated: q, r, lam, alpha, beta, gamma, rho, b, q_e, r_e, r_guide, forget, pw0, w0")
+    tu.add_argument("--params", required=True, help=f"comma-separated: {', '.join(TUNABLE)}")
     tu.add_argument("--steps", type=_positive_int, default=200)
     tu.add_argument("--lr", type=float, default=0.05, help="Adam learning rate (unconstrained coordinates)")
-    tu.add_argument("--loss", default="mse_pos", help="mse_pos | pred_mse | nll")
+    tu.add_argument("--loss", help="mse_pos (default) | pred_mse | nll; airborne: pointing (default) | los_rate; "
+                                   "servo: track_mse (default) | rate_mse")
     tu.add_argument("--runs-per-step", type=_positive_int, default=None, help="fresh runs per step (default 256)")
     tu.add_argument("--filters", default=None, help="comma-separated labels (default: every filter with the parameters)")
     tu.add_argument("--every", type=_positive_int, default=10, help="progress line every N steps")
     tu.add_argument("--out", help="tuned experiment file (default: FILE_tuned.toml beside FILE)")
     tu.add_argument("--max-memory", type=_size, help="refuse a tuning needing more (default: this machine's memory)")
     tu.set_defaults(func=cmd_tune)
-    sw = sub.add_parser("sweep", help="evaluate every filter on a grid of parameter scale factors")
+    sw = sub.add_parser("sweep", help="evaluate every filter on a grid of values of any numbers of the file, or of "
+                                      "filter-parameter scale factors")
     sw.add_argument("experiment")
-    sw.add_argument("--grid", action="append", required=True, help="NAME=LO:HI:N, log-spaced scale factors (q, r, lam, alpha, beta, gamma, rho, b, q_e, r_e, r_guide)")
+    sw.add_argument("--grid", action="append", required=True, help="PATH=LO:HI:N (evenly spaced) or PATH=LO:HI:N:log values of a number of the file (sensor.sigma_r, "
+                         "scenario.speed, filter[EKF].accel_sigma, tracker[joint EKF].q_scale); or NAME=LO:HI:N, "
+                         f"log-spaced scale factors of a filter parameter ({', '.join(SCALABLE)}). Repeat for a 2-D grid")
     sw.add_argument("--runs", type=_positive_int, help="Monte-Carlo runs per grid point (default: the file's)")
     sw.add_argument("--out", help="folder (default: results/<name>_sweep/)")
     sw.add_argument("--no-figures", action="store_true")
@@ -244,7 +246,7 @@ def build_parser():
     rp.add_argument("--out", help="results folder (default results/, or a temporary one with --quick)")
     rp.add_argument("--max-memory", type=_size, help="refuse experiments needing more (default: this machine's memory)")
     rp.set_defaults(func=cmd_reproduce)
-    ls = sub.add_parser("list", help="experiment files, filter kinds, sensors and scenarios")
+    ls = sub.add_parser("list", help="experiment files, filter kinds (with their sensors and parameters), sensors and scenarios")
     ls.add_argument("--dir", default="experiments", help="folder of experiment files")
     ls.set_defaults(func=cmd_list)
     return p

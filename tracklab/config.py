@@ -18,20 +18,20 @@ from typing import Any
 import numpy as np
 
 from tracklab.errors import ConfigError
-from tracklab.filters import FILTER_KINDS, build
-from tracklab.filters.fusion import LaserIrFusion, Select
-from tracklab.models import MODELS, cv
+from tracklab.filters.fusion import view_of as _view
+from tracklab.filters.kind import Entry
+from tracklab.filters.registry import KINDS
 from tracklab.metrics import REPORT_WINDOW
 from tracklab.scenarios import (ConstantVelocity, Crossing, MountFrame, Overflight, Sine, Trajectory, TrajectoryError,
                                  read_csv)
 from tracklab.sensors import SENSOR_KINDS, Sensor, SensorSuite
 from tracklab.studies import parse_studies
+from tracklab.toml_fields import MAX_MAGNITUDE, sigma_list as _sigma_list
 
 MAX_RUNS = 100_000_000
 MAX_STEPS = 1_000_000
 MAX_RUN_STEPS = 10**12
 NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,99}")
-MAX_MAGNITUDE = 1e15  # largest accepted magnitude: squares stay finite in float64
 
 SENSOR_SIGMAS = {
     "polar": ("sigma_r", "sigma_angle"),
@@ -175,48 +175,75 @@ class Experiment:
             names = tuple(names) + (fc.options["guide"],)
         return _view(self.sensor, names, fc.fusion)
 
+    def structure(self, chunk=None, elementwise=True):
+        """What the compiled program depends on: the filters' kinds, models, options and views,
+        the report windows and the chunk size (never the run count, nor any number)."""
+        from tracklab.worlds.tracking import DeclaredFilter, TrackingStructure, default_chunk, hashable, windows_of
+
+        lanes = tuple(DeclaredFilter(fc.label, fc.kind, fc.model, hashable(fc.options), tuple(fc.sensors), fc.fusion)
+                      for fc in self.filters)
+        chunk = int(chunk or self.chunk or default_chunk(self.scenario, self.sensor))
+        return TrackingStructure(lanes, windows_of(self.pred_windows), chunk, elementwise)
+
+    def params(self):
+        """Every number of the experiment, as the compiled program's argument."""
+        from tracklab.worlds.tracking import TrackingParams
+
+        filters = [{k: np.asarray(v, float) for k, v in fc.params.items()} for fc in self.filters]
+        return TrackingParams(self.scenario, self.sensor, self.prior_covariance(), self.prior["acc_sigma"] ** 2, filters)
+
     def filter_specs(self):
+        """The experiment's filters built with its numbers, as ``FilterSpec``s: to run one on
+        measurements of one's own (``run_filter``) or in ``tracklab.monte_carlo``."""
         import jax.numpy as jnp
 
-        from tracklab.engine import FilterSpec
+        from tracklab.worlds.tracking import FilterSpec
 
+        structure, params = self.structure(), self.params()
         specs = []
-        for fc in self.filters:
-            model = MODELS[fc.model](self.dim, self.dt)
-            view, meas_model = self.view(fc)
-            params = {k: jnp.asarray(v, dtype=float) for k, v in fc.params.items()}
-            flt = build(fc.kind, model, meas_model, params, fc.options)
-            report_model = cv(self.dim, self.dt) if fc.kind == "polar_kf" else model
-            specs.append(FilterSpec(fc.label, fc.kind, flt, report_model, self.prior["acc_sigma"] ** 2, view))
+        for f, p in zip(structure.filters, params.filters):
+            p = {k: jnp.asarray(v) for k, v in p.items()}
+            r = f.realise(params.scenario, params.sensor, p, params.prior_extra_var)
+            specs.append(FilterSpec(f.label, f.kind, r.filter, r.model, r.prior_extra_var, r.view))
         return specs
 
+    # what a sweep plots: (summary key, title)
+    sweep_metrics = (("rmse_pos", "time-averaged position RMSE ({pos})"), ("nees", "average NEES"),
+                     ("pred_err_rms", "RMS one-step prediction error ({pos})"))
+
+    def world(self, structure):
+        from tracklab.worlds import tracking
+
+        return tracking.world(structure)
+
+    def scaled(self, params, factors: dict):
+        """``params`` with every filter's parameters named in ``factors`` multiplied by them."""
+        from tracklab.sweep import scales
+
+        return params._replace(filters=[{k: (v * factors[k] if k in factors and scales(fc.kind, p, k) else v)
+                                         for k, v in p.items()} for fc, p in zip(self.filters, params.filters)])
+
+    def summarise(self, structure, params, sums, out) -> dict:
+        """The statistics document of one parameter set's sums (the runner's ``out``)."""
+        from tracklab.metrics import statistics
+        from tracklab.worlds import tracking
+
+        return statistics(tracking.result(structure, params, sums, out), self.window, self.pred_windows)
+
+    @property
+    def units(self):
+        return tuple(getattr(self.scenario, "units", ("m", "m/s")))
+
     def monte_carlo(self, runs=None, seed=None, progress=None, chunk=None, precision=None):
-        import jax
+        from tracklab.worlds import tracking
 
-        from tracklab.engine import monte_carlo
-
-        precision = precision or self.precision
-        with jax.enable_x64(precision == "float64"):  # the filters' constants in the same precision
-            return monte_carlo(
-                self.scenario,
-                self.sensor,
-                self.filter_specs(),
-                runs or self.runs,
-                jax.random.key(self.seed if seed is None else seed),
-                self.prior_covariance(),
-                chunk=chunk or self.chunk,
-                progress=progress,
-                precision=precision,
-                windows=self.pred_windows,
-            )
+        return tracking.run(self.structure(chunk), self.params(), runs or self.runs, self.seed if seed is None else seed,
+                            progress=progress, precision=precision or self.precision)
 
     def memory_bytes(self, runs=None, chunk=None) -> float:
         """A lower bound on the bytes a run needs: one chunk's random draws (float32) for every
         step, and each filter's per-step statistics on the host."""
-        from tracklab.engine import default_chunk
-
-        runs = runs or self.runs
-        chunk = min(chunk or self.chunk or default_chunk(self.scenario, self.sensor), runs)
+        chunk = self.structure(chunk).chunk
         width = 2 * self.dim + self.sensor.m
         return chunk * self.steps * width * 4.0 + len(self.filters) * self.steps * 64 * 8.0
 
@@ -240,20 +267,6 @@ class Experiment:
             return write_results(self, res, tmp, figures=figures)
 
 
-def _view(suite: SensorSuite, names, fusion):
-    names = tuple(names) or tuple(s.name for s in suite.sensors)
-    if fusion is not None:
-        sub = suite.subset(names)
-        laser = next(s.name for s in sub.sensors if s.kind == "spherical")
-        ir = next(s.name for s in sub.sensors if s.kind == "angles")
-        v = LaserIrFusion(suite, laser, ir, fusion)
-        return v, v.model
-    if names == tuple(s.name for s in suite.sensors):
-        return None, suite.sensors[0] if len(suite.sensors) == 1 else suite
-    v = Select(suite, names)
-    return v, v.model
-
-
 def _read_toml(path: Path):
     if not path.is_file():
         raise ConfigError(path, "file", str(path), "experiment file does not exist")
@@ -271,20 +284,6 @@ def _multiple_of(value, dt, zero=True):
     """Whether ``value`` is a whole multiple of ``dt`` (0 allowed when ``zero``)."""
     n = value / dt
     return abs(n - round(n)) < 1e-6 and (round(n) >= 1 or zero and value == 0)
-
-
-def _sigma_list(f, field_name, s, dim, required=True):
-    if s is None:
-        if required:
-            raise ConfigError(f, field_name, None, "is required (a number or a list of one per axis)")
-        return None
-    vals = s if isinstance(s, list) else [s] * dim
-    if len(vals) != dim:
-        raise ConfigError(f, field_name, s, f"must have {dim} values (one per axis) or be a single number")
-    for v in vals:
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= MAX_MAGNITUDE:
-            raise ConfigError(f, field_name, s, f"each value must be a number in (0, {MAX_MAGNITUDE:g}]")
-    return tuple(float(v) for v in vals)
 
 
 def _sensor_tables(f, raw):
@@ -414,9 +413,14 @@ def experiment_header(f, raw, section=None):
 
 
 def load_experiment(path) -> Experiment:
+    """Read and validate an experiment file (any kind: open loop, airborne, servo)."""
     path = Path(path)
-    raw = _read_toml(path)
-    f = path
+    return parse_experiment(path, _read_toml(path))
+
+
+def parse_experiment(path: Path, raw: dict):
+    """Validate an experiment file's contents ``raw`` (its TOML as a dictionary) read from ``path``."""
+    f = path = Path(path)
     if isinstance(raw, dict) and "servo" in raw:  # a closed-loop servo experiment (paper 003)
         from tracklab.servo.experiment import load_servo_experiment
 
@@ -591,83 +595,16 @@ def _pred_windows(f, table, window, steps, dt):
     return {REPORT_WINDOW: report} | out
 
 
-def _dekf_fields(f, i, fs, options, q, r):
-    """[[filter]] fields of kind dekf -> its parameters (and static network shape in ``options``)."""
-    import jax
-
-    from tracklab.filters.dual_ekf import Network, dekf_params
-
-    options["hidden"] = fs.integer("hidden", 4, lo=1, hi=256)
-    options["reading"] = fs.string("reading", "residual", choices=("residual", "literal"))
-    options["scale"] = _sigma_list(f, f"filter[{i}].scale", fs.get("scale", [100.0, 50.0, 30.0]), 3)
-    forget = fs.number("forget", 0.999)
-    if not 0.0 < forget <= 1.0:
-        raise ConfigError(f, f"filter[{i}].forget", forget, "the forgetting factor must be in (0, 1]")
-    seed = fs.integer("weights_seed", 0, lo=0, hi=2**32 - 1)
-    net = Network(options["hidden"], options["scale"], 1.0, options["reading"] == "residual")
-    p = dekf_params(net, q=q, r=r[0], lam=forget, r_e=fs.number("r_e", 0.5, positive=True),
-                    pw0=fs.number("pw0", 1e-4, positive=True), key=jax.random.key(seed))
-    return {k: np.asarray(v).tolist() for k, v in p.items() if k not in ("q", "r")}
-
-
-def _imm_fields(f, i, fs, dim, default_q, r):
-    """[[filter]] fields of kind imm -> its parameters (and its models, turn-rate prior)."""
-    from tracklab.filters import IMM_MODELS, imm_params
-
-    models = fs.get("models", list(IMM_MODELS) if dim >= 2 else ["cv", "ca"])
-    if not isinstance(models, list) or not models or any(m not in IMM_MODELS for m in models) or len(set(models)) != len(models):
-        raise ConfigError(f, f"filter[{i}].models", models, f"must be a list of distinct models from: {', '.join(IMM_MODELS)}")
-    if "ct" in models and dim < 2:
-        raise ConfigError(f, f"filter[{i}].models", models, "the coordinated turn (ct) needs a 2-D or 3-D scenario")
-    cv_q = default_q**2 if default_q > 0 else 1.0
-    q = fs.get("q", [cv_q if m != "ca" else 0.1 * cv_q for m in models])
-    if (not isinstance(q, list) or len(q) != len(models)
-            or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= MAX_MAGNITUDE for v in q)):
-        raise ConfigError(f, f"filter[{i}].q", q, f"must be {len(models)} process-noise variances > 0, one per model")
-    q_turn = fs.number("q_turn", 1e-4, positive=True)
-    turn_sigma = fs.number("turn_rate_sigma", 0.1, positive=True)
-    k = len(models)
-    if fs.has("transition"):
-        if fs.has("p_stay"):
-            raise ConfigError(f, f"filter[{i}].p_stay", fs.get("p_stay"), "give either p_stay or transition, not both")
-        tm = fs.get("transition")
-        ok = isinstance(tm, list) and len(tm) == k and all(
-            isinstance(row, list) and len(row) == k
-            and all(not isinstance(v, bool) and isinstance(v, (int, float)) and 0 <= v <= 1 for v in row)
-            and abs(sum(row) - 1.0) < 1e-9 for row in tm)
-        if not ok:
-            raise ConfigError(f, f"filter[{i}].transition", tm, f"must be a {k}x{k} matrix of probabilities whose rows sum to 1")
-        matrix = np.array(tm, float)
-    else:
-        p_stay = fs.number("p_stay", 0.95)
-        if not 0.0 < p_stay <= 1.0 or (k > 1 and p_stay == 1.0):
-            raise ConfigError(f, f"filter[{i}].p_stay", p_stay, "must be a probability in (0, 1) (1 with one model)")
-        matrix = None
-    out = imm_params(models, q, q_turn, r, p_stay=p_stay if matrix is None else 0.95, transition_matrix=matrix)
-    out = {k: np.asarray(v).tolist() for k, v in out.items()}  # plain numbers, like every filter's parameters
-    return dict(out, models=models, turn_rate_sigma=turn_sigma)
-
-
-def _gain_value(fs, key, required=True):
-    v = fs.get(key)
-    if v is None:
-        if required:
-            raise fs._err(key, None, "is required for explicit gains")
-        return None
-    vals = v if isinstance(v, list) else [v]
-    if any(isinstance(x, bool) or not isinstance(x, (int, float)) or not 0 < x < 4 for x in vals):
-        raise fs._err(key, v, "must be a number (or one per axis) in (0, 4)")
-    return tuple(float(x) for x in vals) if isinstance(v, list) else float(v)
-
-
 def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q) -> FilterConfig:
+    """One [[filter]] table: its kind, label and what it sees (the sensors, a guide, a fusion), checked
+    against the sensor kinds the kind accepts; then the kind's own fields (its declaration's ``read``)."""
     fs = _Section(f, f"filter[{i}]", table)
-    fkind = fs.string("kind", required=True, choices=tuple(FILTER_KINDS))
-    label = fs.label("label", fkind)
+    kind = KINDS[fs.string("kind", required=True, choices=tuple(KINDS))]
+    label = fs.label("label", kind.name)
 
     # what the filter sees
     all_names = tuple(s.name for s in suite.sensors)
-    guide = fs.string("guide", "previous") if fkind == "error_space" else "previous"
+    guide = fs.string("guide", "previous") if kind.guided else "previous"
     if guide != "previous" and guide not in all_names:
         raise ConfigError(f, f"filter[{i}].guide", guide, f"must be \"previous\" or a sensor name from: {', '.join(all_names)}")
     default_names = [n for n in all_names if n != guide]
@@ -685,130 +622,22 @@ def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q) -> Filter
             raise ConfigError(f, f"filter[{i}].fusion", fusion, "registration needs every infrared report: set its p_detect = 1")
     _, meas = _view(suite, names, fusion)
     mkind = meas.kind
-    if fkind == "error_space":
+    guide_sensor = None
+    if kind.guided:
         if len(names) != 1 or guide in names:
-            raise ConfigError(f, f"filter[{i}].sensors", list(names), "error_space observes one sensor (its guide is set by 'guide')")
+            raise ConfigError(f, f"filter[{i}].sensors", list(names), f"{kind.name} observes one sensor (its guide is set by 'guide')")
         if guide != "previous":
-            g = suite.subset((guide,)).sensors[0]
-            if g.kind != mkind or g.m != meas.m:
+            guide_sensor = suite.subset((guide,)).sensors[0]
+            if guide_sensor.kind != mkind or guide_sensor.m != meas.m:
                 raise ConfigError(f, f"filter[{i}].guide", guide, f"the guide sensor must be of the observed sensor's kind ({mkind})")
-    if fkind == "kf" and not meas.linear:
-        raise ConfigError(f, f"filter[{i}].kind", fkind, "needs linear sensors only (cartesian or mount): use ekf, ukf or stf")
-    ok = FILTER_KINDS[fkind][1]
-    if mkind not in ok:
+    if mkind not in kind.accepts:
         seen = "several sensors" if mkind == "suite" else f"a '{mkind}' sensor"
-        raise ConfigError(f, f"filter[{i}].kind", fkind, f"needs a sensor of kind {' or '.join(ok)}, but sees {seen}")
+        raise ConfigError(f, f"filter[{i}].kind", kind.name, f"needs a sensor of kind {' or '.join(kind.accepts)}, but sees {seen}")
 
-    if fkind == "dekf" and (dim != 1 or meas.m != 1):
-        raise ConfigError(f, f"filter[{i}].kind", fkind, "dekf tracks one angle channel: a 1-D scenario and a 1-D cartesian sensor")
-    if fkind == "dekf" and fs.get("model", "ca") != "ca":
-        raise ConfigError(f, f"filter[{i}].model", fs.get("model"), "dekf works on the ca state [theta, rate, acceleration]")
-    if fkind == "imm" and fs.has("model"):
-        raise ConfigError(f, f"filter[{i}].model", fs.get("model"), "imm has its own models: use models = [\"cv\", \"ca\", \"ct\"]")
-    model = "ca" if fkind in ("imm", "dekf") else fs.string("model", "ca" if fkind == "alpha_beta_gamma" else "cv", choices=tuple(MODELS))
-    if fkind == "polar_kf" and model != "cv":
-        raise ConfigError(f, f"filter[{i}].model", model, "polar_kf has its own polar CV state: use model = \"cv\"")
-    if fkind == "alpha_beta" and model != "cv" or fkind == "alpha_beta_gamma" and model != "ca":
-        need = "cv" if fkind == "alpha_beta" else "ca"
-        raise ConfigError(f, f"filter[{i}].model", model, f"{fkind} works on the {need} model")
-    sigma_key = "accel_sigma" if model == "cv" else "accel_increment_sigma"
-    if fkind == "imm":
-        q = None  # one per model, below
-    elif fs.has("q"):  # the process-noise variance itself (a paper's q)
-        if fs.has(sigma_key):
-            raise ConfigError(f, f"filter[{i}].q", fs.get("q"), f"give either q or {sigma_key}, not both")
-        q = fs.number("q", positive=True)
-    elif model == "cv":
-        q = fs.number("accel_sigma", default_q if default_q > 0 else 1.0, positive=True) ** 2
-    else:
-        q = fs.number("accel_increment_sigma", 1.0, positive=True) ** 2
-    sigma_v = math.sqrt(q) if q is not None else None
-
-    options = {}
-    if fkind == "cmkf":
-        debias = fs.string("debias", "plain", choices=("plain", "additive", "unbiased"))
-        if debias == "additive" and mkind != "polar":
-            raise ConfigError(f, f"filter[{i}].debias", debias, "the additive (Lerro) conversion is 2-D: use plain or unbiased with a spherical sensor")
-        options["debias"] = debias
-
-    if fkind == "ukf":
-        options["ut_alpha"] = fs.number("ut_alpha", 1.0, lo=1e-4, hi=1.0)
-        options["ut_beta"] = fs.number("ut_beta", 2.0, nonneg=True)
-        options["ut_kappa"] = fs.number("ut_kappa", 0.0, nonneg=True)
-
-    # the noise the filter assumes: defaults to the sensors' own
-    if fs.has("r"):  # the measurement-noise variances themselves, one or one per component
-        sig_keys = SENSOR_SIGMAS.get(mkind, ())
-        if any(fs.has(k) for k in sig_keys):
-            raise ConfigError(f, f"filter[{i}].r", fs.get("r"), f"give either r or {'/'.join(sig_keys)}, not both")
-        r = _sigma_list(f, f"filter[{i}].r", fs.get("r"), meas.m)  # variances, checked like sigmas
-    elif mkind == "suite":
-        r = tuple(v**2 for v in meas.sigma)
-    elif mkind == "cartesian":
-        r = tuple(v**2 for v in (_sigma_list(f, f"filter[{i}].sigma", fs.get("sigma"), dim, required=False) or meas.sigma))
-    else:
-        r = tuple(fs.number(k, sv, positive=True) ** 2 for k, sv in zip(SENSOR_SIGMAS[mkind], meas.sigma))
-    params = {"q": q, "r": r}
-
-    if fkind == "imm":
-        params.update(_imm_fields(f, i, fs, dim, default_q, r))
-        options["models"] = tuple(params.pop("models"))
-        options["turn_rate_sigma"] = params.pop("turn_rate_sigma")
-    if fkind == "dekf":
-        params.update(_dekf_fields(f, i, fs, options, q, r))
-    if fkind == "stf":
-        params["rho"] = fs.number("rho", 0.95)
-        if not 0.0 < params["rho"] <= 1.0:
-            raise ConfigError(f, f"filter[{i}].rho", params["rho"], "the forgetting factor must be in (0, 1]")
-        params["b"] = fs.number("b", 1.0, positive=True)
-    if fkind == "error_space":
-        params["q_e"] = fs.number("q_e", q, positive=True)
-        r_e = fs.get("r_e")
-        params["r_e"] = r if r_e is None else _sigma_list(f, f"filter[{i}].r_e", r_e, meas.m)
-        options["guide"] = guide
-        if guide != "previous":
-            r_g = fs.get("r_guide")
-            g = suite.subset((guide,)).sensors[0]
-            params["r_guide"] = tuple(v**2 for v in g.sigma) if r_g is None else _sigma_list(f, f"filter[{i}].r_guide", r_g, meas.m)
-            options["guide_delay"] = fs.integer("guide_delay", 0, lo=0, hi=10_000)
-        elif fs.has("guide_delay"):
-            raise ConfigError(f, f"filter[{i}].guide_delay", fs.get("guide_delay"), "applies to an external guide sensor only")
-
-    if fkind in ("alpha_beta", "alpha_beta_gamma"):
-        order = 2 if fkind == "alpha_beta" else 3
-        gnames = ("alpha", "beta", "gamma")[:order]
-        explicit = any(fs.has(g) for g in gnames)
-        gains = fs.string("gains", "explicit" if explicit else "kalata", choices=("kalata", "growing_memory", "explicit"))
-        if mkind != "cartesian":
-            options["conversion"] = fs.string("conversion", "plain", choices=("plain", "unbiased"))
-        if gains == "explicit":
-            for g in gnames:
-                params[g] = _gain_value(fs, g)
-        elif explicit:
-            raise ConfigError(f, f"filter[{i}].gains", gains, "explicit alpha/beta/gamma need gains = \"explicit\" (or no gains field)")
-        floor = fs.get("floor") if gains == "growing_memory" else None
-        if gains == "growing_memory" and floor is not None:
-            if floor == "kalata":
-                options["floor"] = "kalata"
-            elif isinstance(floor, list) and len(floor) == order and all(
-                not isinstance(v, bool) and isinstance(v, (int, float)) and 0 <= v < 4 for v in floor
-            ):
-                options["floor"] = "explicit"
-                params["floor"] = tuple(float(v) for v in floor)
-            else:
-                raise ConfigError(f, f"filter[{i}].floor", floor, f"must be \"kalata\" or {order} gains [{', '.join(gnames)}] in [0, 4)")
-        options["gains"] = gains
-        if gains == "kalata" or options.get("floor") == "kalata":
-            lam = _sigma_list(f, f"filter[{i}].tracking_index", fs.get("tracking_index"), dim, required=False)
-            if lam is None:
-                sw = fs.get("sigma_w")
-                if sw is None and mkind != "cartesian":
-                    raise ConfigError(f, f"filter[{i}].sigma_w", None, "is required (position-noise std per axis, m) for Kalata gains behind a non-Cartesian sensor, unless tracking_index is given")
-                sigma_w = _sigma_list(f, f"filter[{i}].sigma_w", sw, dim) if sw is not None else tuple(np.sqrt(r))
-                T = getattr(meas, "period", 0.0) or dt  # the update interval
-                lam = tuple(sigma_v * T**2 / w for w in sigma_w)
-            elif fs.has("sigma_w"):
-                raise ConfigError(f, f"filter[{i}].sigma_w", fs.get("sigma_w"), "give either tracking_index or sigma_w, not both")
-            params["lam"] = lam
+    entry = Entry(fs, kind, meas, dim=dim, dt=dt, accel_sigma=default_q, sigma_fields=SENSOR_SIGMAS.get(mkind, ()),
+                  guide=guide_sensor)
+    model, params, options = kind.read(entry)
+    if kind.guided:
+        options = {"guide": guide, **options}
     fs.check_unknown()
-    return FilterConfig(label, fkind, model, params, options, names if names != all_names else (), fusion)
+    return FilterConfig(label, kind.name, model, params, options, names if names != all_names else (), fusion)

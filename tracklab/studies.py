@@ -61,8 +61,9 @@ class SweepStudy:
 def parse_studies(f, tables, section_cls, exp_filters) -> list:
     """Validate the ``[[study]]`` tables (``section_cls``: config's typed table reader)."""
     from tracklab.config import MAX_RUNS
-    from tracklab.sweep import parse_grid
-    from tracklab.tune import LOSSES, TUNABLE
+    from tracklab.filters.registry import TUNABLE
+    from tracklab.sweep import parse_grid, scales
+    from tracklab.tune import LOSSES, tunes
 
     if tables is None:
         return []
@@ -87,7 +88,7 @@ def parse_studies(f, tables, section_cls, exp_filters) -> list:
             if chosen is not None and (not isinstance(chosen, list) or not chosen or any(c not in labels for c in chosen)):
                 raise ConfigError(f, f"study[{i}].filters", chosen, f"must be a list of filter labels from: {', '.join(labels)}")
             pool = [labels[c] for c in chosen] if chosen else list(labels.values())
-            if not any(p in fc.params for fc in pool for p in params):
+            if not any(tunes(fc.kind, fc.params, p) for fc in pool for p in params):
                 raise ConfigError(f, f"study[{i}].params", params, "no selected filter has any of these parameters")
             loss = st.string("loss", "mse_pos", choices=tuple(LOSSES))
             lr = st.number("lr", 0.05, positive=True)
@@ -98,15 +99,18 @@ def parse_studies(f, tables, section_cls, exp_filters) -> list:
             grid = st.get("grid")
             if not isinstance(grid, list) or not grid or any(not isinstance(g, str) for g in grid):
                 raise ConfigError(f, f"study[{i}].grid", grid, "must be a list of NAME=LO:HI:N strings")
-            names = []
+            axes = []
             for g in grid:
                 try:
-                    names.append(parse_grid(g).name)
+                    axes.append(parse_grid(g))
                 except ValueError as e:
                     raise ConfigError(f, f"study[{i}].grid", g, str(e)) from None
+            names = [a.name for a in axes]
             if len(set(names)) != len(names):
                 raise ConfigError(f, f"study[{i}].grid", grid, "each parameter may appear once")
-            missing = next((n for n in names if not any(n in fc.params for fc in exp_filters)), None)
+            # scale factors need a filter with the parameter; a PATH is checked against the file by the sweep
+            missing = next((a.name for a in axes if a.path is None
+                            and not any(scales(fc.kind, fc.params, a.name) for fc in exp_filters)), None)
             if missing:
                 raise ConfigError(f, f"study[{i}].grid", grid, f"no filter of this experiment has the parameter {missing!r}")
             study = SweepStudy(tuple(grid), st.integer("runs", None, lo=1, hi=MAX_RUNS), out)

@@ -1,56 +1,192 @@
-"""Parameter sweeps: a grid of scale factors evaluated in one vmapped call.
+"""Sweeps: a grid of values evaluated by one compiled program, on common random numbers.
 
-``--grid q=0.01:100:9`` multiplies every filter's process-noise variance by 9
-log-spaced factors from 0.01 to 100 (``r`` likewise scales R): the noise-mismatch
-study of paper 001. Any numeric filter parameter (``q``, ``r``, ``lam``,
-``alpha``, ``beta``, ``gamma``, the STF's ``rho`` and ``b``, the error-space
-``q_e``, ``r_e``, ``r_guide``) can be scaled. All grid points of a chunk of runs
-are one call, ``vmap``-ped over the grid; grid points and runs are processed in
-blocks so memory stays bounded. Run i uses the same random numbers at every grid
-point (common random numbers), so differences between points are the
-parameters', not the noise's.
+Two kinds of axis (``--grid``):
+
+* ``NAME=LO:HI:N`` with NAME a filter parameter its kind declares sweepable (``q``, ``r``,
+  ``lam``, ``alpha``, …; ``SCALABLE``): N log-spaced *scale factors* from LO to HI, multiplying that
+  parameter of every filter (of every tracker of an airborne file: q its Q, r its
+  R; of every estimator of a servo file) — the noise-mismatch study of paper 001.
+* ``PATH=LO:HI:N`` (evenly spaced) or ``PATH=LO:HI:N:log``: N *values* of any
+  number of the file. PATH is ``section.field`` (``sensor.sigma_r``,
+  ``scenario.speed``, ``engagement.turn_g``, ``servo.noise``) or, in an array of
+  tables, ``section[LABEL].field`` with the entry's label (a sensor's name; or its
+  1-based index): ``filter[EKF].accel_sigma``, ``tracker[joint EKF].q_scale``.
+
+Each grid point is the file with those values, validated as the file itself is;
+its numbers are a parameter set of the same compiled program (numbers are inputs:
+a value that would change the program — a step count, a kind — is refused). The
+parameter sets of a block of points are stacked along a leading axis and run on
+the same runs (run i draws from ``fold_in(key, i)`` at every point), so
+differences between points are the parameters', not the noise's. Grid points and
+runs are processed in blocks so memory stays bounded.
 """
 
 from __future__ import annotations
 
+import copy
 import csv
 import io
 import itertools
+import math
 import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from tracklab.engine import MonteCarloResult, Sums, make_chunk_fn, pcrlb
-from tracklab.metrics import statistics
+from tracklab.errors import ConfigError
+from tracklab.filters.registry import KINDS, SCALABLE
+from tracklab.montecarlo import runner
 from tracklab.output import atomic_folder
 from tracklab.report import _fmt, md_cell, write_json
 
-GRID_RE = re.compile(r"^([a-z_]+)=([^:]+):([^:]+):(\d+)$")
-SCALABLE = ("q", "r", "lam", "alpha", "beta", "gamma", "rho", "b", "q_e", "r_e", "r_guide")
+GRID_RE = re.compile(r"^(?P<key>[^=]+)=(?P<lo>[^:]+):(?P<hi>[^:]+):(?P<n>[^:]+)(?::(?P<spacing>[a-z]+))?$")
+PATH_RE = re.compile(r"^(?P<section>[A-Za-z_][A-Za-z0-9_]*)(?:\[(?P<label>[^\]]+)\])?\.(?P<field>[A-Za-z_][A-Za-z0-9_]*)$")
+MAX_POINTS_PER_AXIS = 1000
+# units of the numbers a figure's axis may name (by field)
+UNITS = {"sigma_r": "m", "sigma": "m", "sigma_angle": "rad", "sigma_az": "rad", "sigma_el": "rad", "speed": "m/s",
+         "offset": "m", "start_x": "m", "altitude": "m", "accel_sigma": "m/s²", "accel_increment_sigma": "m/s²",
+         "pos_sigma": "m", "vel_sigma": "m/s", "acc_sigma": "m/s²", "period": "s", "dt": "s", "max_elevation": "deg",
+         "t_closest": "s", "heading": "deg", "amplitude": "deg", "omega": "rad/s", "phase": "rad", "lam": "1/s",
+         "noise": "arcsec", "settle": "s", "accel_ff": "s", "turn_g": "g", "own_speed": "m/s", "target_speed": "m/s",
+         "target_range": "m", "singer_sigma": "m/s²", "singer_tau": "s", "angle": "mrad", "range": "m",
+         "velocity": "m/s", "pointing": "mrad", "los_rate": "mrad/s", "range_rate": "m/s", "half_angle": "deg",
+         "axis_elevation": "deg", "tracking_index": "", "p_detect": ""}
 
 
 @dataclass(frozen=True)
 class Axis:
-    name: str
-    values: np.ndarray  # scale factors
+    name: str  # NAME (scale factors) or PATH (values), as given
+    values: np.ndarray
+    path: tuple | None = None  # (section, label or None, field) of a PATH axis; None: scale factors
+    log: bool = True  # spaced evenly in log (figures: log axis)
+
+    @property
+    def title(self) -> str:
+        """The axis in a figure: the swept field and its unit."""
+        if self.path is None:
+            return f"{self.name} scale factor"
+        unit = UNITS.get(self.path[2], "")
+        return f"{self.name} ({unit})" if unit else self.name
 
 
 def parse_grid(spec: str) -> Axis:
-    """NAME=LO:HI:N -> N log-spaced factors from LO to HI."""
+    """``NAME=LO:HI:N`` (scale factors, log-spaced) or ``PATH=LO:HI:N[:log]`` (values) -> Axis.
+
+    Raises ValueError (the reason, in words) for a malformed spec; whether PATH names a
+    number of a file is checked against the file (``resolve``)."""
     m = GRID_RE.match(spec.strip())
     if not m:
-        raise ValueError("must look like NAME=LO:HI:N, e.g. q=0.01:100:9")
-    name, lo, hi, n = m.group(1), float(m.group(2)), float(m.group(3)), int(m.group(4))
-    if name not in SCALABLE:
-        raise ValueError(f"NAME must be one of {', '.join(SCALABLE)}")
-    if not (0 < lo <= hi and np.isfinite(hi)) or not 1 <= n <= 1000:
-        raise ValueError("needs 0 < LO <= HI and 1 <= N <= 1000")
-    return Axis(name, np.geomspace(lo, hi, n))
+        raise ValueError("must look like NAME=LO:HI:N (q=0.01:100:9) or PATH=LO:HI:N[:log] (sensor.sigma_r=50:200:7)")
+    key, spacing = m.group("key").strip(), m.group("spacing")
+    try:
+        lo, hi = float(m.group("lo")), float(m.group("hi"))
+    except ValueError:
+        raise ValueError("LO and HI must be numbers") from None
+    try:
+        n = int(m.group("n"))
+    except ValueError:
+        raise ValueError(f"N must be a whole number of grid values, not {m.group('n')!r}") from None
+    if not 1 <= n <= MAX_POINTS_PER_AXIS:
+        raise ValueError(f"N must be in [1, {MAX_POINTS_PER_AXIS}]")
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        raise ValueError("LO and HI must be finite numbers")
+    if spacing not in (None, "log"):
+        raise ValueError(f"the spacing after N can only be 'log', not {spacing!r}")
+    if "." not in key:
+        if key not in SCALABLE:
+            raise ValueError(f"NAME must be one of {', '.join(SCALABLE)}, or a PATH to a number of the file "
+                             f"(section.field, section[LABEL].field)")
+        if not 0 < lo <= hi:
+            raise ValueError("scale factors need 0 < LO <= HI")
+        return Axis(key, np.geomspace(lo, hi, n))
+    p = PATH_RE.match(key)
+    if not p:
+        raise ValueError("PATH must be section.field or section[LABEL].field, e.g. sensor.sigma_r or "
+                         "filter[EKF].accel_sigma")
+    path = (p.group("section"), p.group("label"), p.group("field"))
+    if spacing == "log":
+        if not 0 < lo <= hi:
+            raise ValueError("a log grid needs 0 < LO <= HI")
+        return Axis(key, np.geomspace(lo, hi, n), path, True)
+    if lo > hi:
+        raise ValueError("needs LO <= HI")
+    return Axis(key, np.linspace(lo, hi, n), path, False)
+
+
+def _entry_label(section, table):
+    return table.get("label", table.get("name", table.get("kind")))
+
+
+def _table(raw: dict, path, create=False):
+    """The TOML table a PATH's field lives in (a new one when ``create`` and the section is
+    absent); raises ValueError with the reason."""
+    section, label, _ = path
+    t = raw.get(section)
+    if label is None:
+        if isinstance(t, list):
+            names = [str(_entry_label(section, e)) for e in t if isinstance(e, dict)]
+            raise ValueError(f"[[{section}]] holds several tables: pick one, {section}[LABEL].field "
+                             f"(labels: {', '.join(names)})")
+        if t is None and create:
+            t = raw[section] = {}
+        if not isinstance(t, dict):
+            raise ValueError(f"the file has no [{section}] table")
+        return t
+    if not isinstance(t, list):
+        if isinstance(t, dict) and str(_entry_label(section, t)) == label:
+            return t  # a single table picked by its label
+        raise ValueError(f"the file has no [[{section}]] tables to pick {label!r} from")
+    entries = [e for e in t if isinstance(e, dict)]
+    found = [e for e in entries if str(_entry_label(section, e)) == label]
+    if not found and label.isdigit() and 1 <= int(label) <= len(entries):
+        found = [entries[int(label) - 1]]
+    if not found:
+        names = [str(_entry_label(section, e)) for e in entries]
+        raise ValueError(f"no [[{section}]] entry is labelled {label!r} (labels: {', '.join(names)})")
+    return found[0]
+
+
+def _set(raw: dict, path, value):
+    table = _table(raw, path, create=True)
+    old = table.get(path[2])
+    whole = isinstance(old, int) and not isinstance(old, bool) and float(value).is_integer()
+    table[path[2]] = int(value) if whole else float(value)  # an integer field stays an integer
+
+
+def resolve(exp, axes: list[Axis]):
+    """Check every PATH axis against the file: it names a number (present, or one the file may
+    give), and the file is valid at the grid's ends. ConfigError (one line) otherwise."""
+    from tracklab.config import parse_experiment
+
+    for a in axes:
+        if a.path is None:
+            continue
+        try:
+            table = _table(copy.deepcopy(exp.raw), a.path, create=True)
+        except ValueError as e:
+            raise ConfigError(exp.path, "--grid", a.name, str(e)) from None
+        v = table.get(a.path[2])
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))):
+            kind = type(v).__name__.replace("str", "a string").replace("list", "a list").replace("dict", "a table")
+            raise ConfigError(exp.path, "--grid", a.name, f"is not a number in the file (it is {kind}): only numbers "
+                              "can be swept")
+    for end in ({a.name: a.values[0] for a in axes}, {a.name: a.values[-1] for a in axes}):
+        raw = copy.deepcopy(exp.raw)
+        for a in axes:
+            if a.path is not None:
+                _set(raw, a.path, end[a.name])
+        try:
+            point = parse_experiment(exp.path, raw)
+        except ConfigError as e:
+            what = ", ".join(f"{a.name} = {end[a.name]:g}" for a in axes if a.path is not None)
+            raise ConfigError(exp.path, "--grid", what, f"gives an invalid file: {e.field} = {e.value!r}: {e.allowed}") from None
+        if point.structure() != exp.structure():
+            raise ConfigError(exp.path, "--grid", ", ".join(a.name for a in axes if a.path),
+                              "changes what the program is compiled for (a step count, a kind, the report "
+                              "timing), not just a number: run the values separately")
 
 
 def grid_points(axes: list[Axis]) -> int:
@@ -61,97 +197,104 @@ def _call_shape(exp, points, runs, chunk=None, block_points=None):
     """(runs, grid points) of one call: memory per call grows with grid points × runs × steps,
     kept near 10⁶ run-steps."""
     budget = 1_000_000
-    chunk = int(min(chunk or exp.chunk or 1000, runs, max(16, budget // exp.steps)))
-    return chunk, int(block_points or max(1, min(points, budget // (chunk * exp.steps))))
+    steps = getattr(exp, "ticks", exp.steps)
+    chunk = int(min(chunk or exp.chunk or 1000, runs, max(1, budget // steps)))  # a sweep's own program
+    return chunk, int(block_points or max(1, min(points, budget // (chunk * steps))))
 
 
 def memory_bytes(exp, axes: list[Axis], runs=None) -> float:
     """A lower bound: every grid point's per-step statistics of every filter (kept until the
-    sweep is written) and its PCRLB information, and one call's random draws."""
+    sweep is written), and one call's per-step values."""
     P = grid_points(axes)
     chunk, block = _call_shape(exp, P, runs or exp.runs)
-    width = 2 * exp.dim + exp.sensor.m
-    per_point = exp.steps * (len(exp.filters) * 64 + exp.dim**2) * 8.0
-    return P * per_point + block * chunk * exp.steps * width * 4.0
+    lanes = len(exp.structure().labels)
+    width = 2 * exp.dim + exp.sensor.m if hasattr(exp, "sensor") else 12
+    per_point = exp.steps * (lanes * 64 + getattr(exp, "dim", 1) ** 2) * 8.0
+    return P * per_point + block * chunk * getattr(exp, "ticks", exp.steps) * width * 4.0
 
 
 def check_sweep(exp, axes: list[Axis], runs=None, limit=None):
-    """Refuse (ConfigError) a grid naming a parameter no filter has, or one too large to hold."""
-    from tracklab.errors import ConfigError
+    """Refuse (ConfigError, one line) a grid naming a parameter nothing has, a PATH that names no
+    number or one that changes the program, an estimator trained before its run, or a grid too
+    large to hold."""
     from tracklab.memory import check
 
+    names = [a.name for a in axes]
+    if len(set(names)) != len(names):
+        raise ConfigError(exp.path, "--grid", " ".join(names), "each parameter may appear once")
     for a in axes:
-        if not any(a.name in fc.params for fc in exp.filters):
+        if a.path is None and not _scales(exp, a.name):
             raise ConfigError(exp.path, "--grid", a.name, f"no filter of this experiment has the parameter {a.name!r}")
+    if any(getattr(e, "train_steps", 0) > 0 for e in getattr(exp, "estimators", ())):
+        raise ConfigError(exp.path, "--grid", " ".join(names), "an estimator trained before its run (train_steps > 0) "
+                          "cannot be swept: set train_steps = 0, or sweep the trained weights through the Python API")
+    resolve(exp, axes)
     check(exp.path, memory_bytes(exp, axes, runs), limit, f"a sweep of {grid_points(axes):.3g} grid points",
           "fewer grid points (N in NAME=LO:HI:N), or fewer experiment.steps")
 
 
-def scaled(params: dict, factors: dict) -> dict:
-    return {k: (v * factors[k] if k in factors else v) for k, v in params.items()}
+def scales(kind: str, params: dict, name) -> bool:
+    """Whether a scale-factor axis ``name`` scales a filter of ``kind`` with ``params``."""
+    return name in params and KINDS[kind].params[name].sweep
+
+
+def _scales(exp, name) -> bool:
+    """Whether a scale-factor axis ``name`` scales something in this experiment."""
+    if hasattr(exp, "filters"):
+        return any(scales(fc.kind, fc.params, name) for fc in exp.filters)
+    if hasattr(exp, "trackers"):
+        return name in ("q", "r") and any(t.kind != "classical" for t in exp.trackers)
+    return name in ("q", "r") and bool(getattr(exp, "estimators", ()))
+
+
+def point_params(exp, axes: list[Axis], values):
+    """The params of one grid point: the file with the PATH values (validated), scale factors applied."""
+    from tracklab.config import parse_experiment
+
+    raw, factors = None, {}
+    for a, v in zip(axes, values):
+        if a.path is None:
+            factors[a.name] = float(v)
+        else:
+            raw = raw if raw is not None else copy.deepcopy(exp.raw)
+            _set(raw, a.path, v)
+    point = exp if raw is None else parse_experiment(exp.path, raw)
+    params = point.params()
+    return exp.scaled(params, factors) if factors else params
 
 
 def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=None, progress=None, max_memory=None):
-    """Statistics of every filter at every grid point: {"points": [...], "stats": [statistics, ...]}."""
+    """Statistics of every filter at every grid point: {"points": [{"values", "stats"}], ...}.
+
+    The grid points of a block are parameter sets stacked along a leading axis of the params,
+    run by one compiled program on the same runs (the runner's ``points``)."""
     check_sweep(exp, axes, runs, max_memory)
-    specs = exp.filter_specs()
-    fn = make_chunk_fn(exp.scenario, exp.sensor, specs, exp.prior_covariance(), exp.dt, exp.pred_windows)
-    base = [s.filter.params for s in specs]
     runs = runs or exp.runs
-    key = jax.random.key(exp.seed if seed is None else seed)
+    seed = exp.seed if seed is None else seed
     points = list(itertools.product(*[a.values for a in axes]))
     names = [a.name for a in axes]
     P = len(points)
     chunk, block = _call_shape(exp, P, runs, chunk, block_points)
-
-    def point_params(f):
-        factors = dict(zip(names, f))
-        return [scaled(p, factors) for p in base]
-
-    def many(factors, key, idx, live, exclude):  # vmapped over the grid points of a block
-        return jax.vmap(lambda f, ex: fn(point_params(f), key, idx, live, ex))(factors, exclude)
-
-    many = jax.jit(many)
-    grid = jnp.asarray(np.array(points, float).reshape(P, len(axes)))
-    acc = [{s.label: Sums() for s in specs} for _ in range(P)]
-    info = [np.zeros((exp.steps, exp.dim, exp.dim)) for _ in range(P)]
+    structure = exp.structure(chunk)
+    world = exp.world(structure)
+    n_blocks = -(-P // block)
+    stats, compile_s = [], 0.0
     t0 = time.perf_counter()
-    n_chunks = -(-runs // chunk)
-    for b0 in range(0, P, block):
-        fb = grid[b0:b0 + block]
-        pad = block - fb.shape[0]
-        if pad:
-            fb = jnp.concatenate([fb, jnp.repeat(fb[-1:], pad, axis=0)])
-        for c in range(n_chunks):
-            idx = np.arange(c * chunk, (c + 1) * chunk, dtype=np.uint32)
-            args = (fb, key, jnp.asarray(idx), jnp.asarray(idx < runs))
-            out = jax.device_get(many(*args, jnp.zeros((block, len(specs), chunk), bool)))
-            masks = np.stack([out[s.label].pop("diverged_runs") for s in specs], axis=1)  # (block, filters, chunk)
-            if masks.any():  # leave every diverged run out from its first step (see engine.rerun_without_diverged)
-                out = jax.device_get(many(*args, jnp.asarray(masks)))
-                for s in specs:
-                    out[s.label].pop("diverged_runs")
-            for j in range(block - pad):
-                info[b0 + j] += out["_info"][j]
-                for s in specs:
-                    acc[b0 + j][s.label].add({k: v[j] for k, v in out[s.label].items() if k != "example_x"})
-            if progress:
-                progress((b0 // block) * n_chunks + c + 1, -(-P // block) * n_chunks)
+    for bi, b0 in enumerate(range(0, P, block)):
+        sets = [point_params(exp, axes, v) for v in points[b0:b0 + block]]
+        n = len(sets)
+        sets += sets[-1:] * (block - n)  # the last block padded to the same program
+        stacked = jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *sets)
+        tick = (lambda done, total, bi=bi: progress(bi * runs + done, n_blocks * runs)) if progress else None
+        out = runner.run(world, stacked, runs, seed, precision=exp.precision, points=block, progress=tick)
+        compile_s += out.compile_s
+        stats += [exp.summarise(structure, runner.pick(stacked, j), runner.pick(out.sums, j), out) for j in range(n)]
     wall = time.perf_counter() - t0
-
-    results = []
-    for j, f in enumerate(points):
-        res = MonteCarloResult(
-            runs=runs, steps=exp.steps, dt=exp.dt, dim=exp.dim,
-            sums={l: a.data for l, a in acc[j].items()},
-            pcrlb=pcrlb(exp.scenario, exp.prior_covariance(), info[j] / runs),
-            wall_s=wall, compile_s=0.0, labels=[s.label for s in specs], kinds={s.label: s.kind for s in specs},
-            axes=tuple(getattr(exp.scenario, "axes", ("x", "y", "z")[: exp.dim])),
-            units=tuple(getattr(exp.scenario, "units", ("m", "m/s"))),
-        )
-        results.append({"factors": dict(zip(names, map(float, f))), "stats": statistics(res, exp.window, exp.pred_windows)})
-    return {"axes": {a.name: a.values.tolist() for a in axes}, "points": results, "wall_s": wall, "runs": runs,
-            "units": list(getattr(exp.scenario, "units", ("m", "m/s")))}
+    doc_points = [{"values": dict(zip(names, map(float, v))), "stats": st} for v, st in zip(points, stats)]
+    return {"axes": {a.name: a.values.tolist() for a in axes}, "titles": {a.name: a.title for a in axes},
+            "log": {a.name: a.log for a in axes}, "points": doc_points, "wall_s": wall, "compile_s": compile_s,
+            "runs": runs, "units": list(exp.units),
+            "metrics": [[k, t.format(pos=exp.units[0])] for k, t in exp.sweep_metrics]}
 
 
 def write_sweep(exp, doc, out, figures=True):
@@ -164,30 +307,42 @@ def _csv(v):
     return v if v is not None and np.isfinite(v) else ""
 
 
+_NOT_METRICS = ("runs", "diverged", "lost_lock", "healthy_runs")
+
+
+def _metrics(summary: dict) -> list[str]:
+    """The columns of a sweep's table: the headline statistics of the world's summaries."""
+    if "pred_err_rms" in summary:  # open-loop tracking
+        return (["rmse_pos", "rmse_vel", "pred_err_rms"] + [k for k in summary if k.startswith("pred_err_max[")]
+                + ["nees", "nees_in_bounds"])
+    return [k for k, v in summary.items() if k not in _NOT_METRICS and (v is None or isinstance(v, (int, float)))]
+
+
 def _write_sweep(exp, doc, tmp, figures):
     names = list(doc["axes"])
     labels = list(doc["points"][0]["stats"]["filters"])
-    first = doc["points"][0]["stats"]["filters"][labels[0]]["summary"]
-    metrics = ["rmse_pos", "rmse_vel", "pred_err_rms"] + [k for k in first if k.startswith("pred_err_max[")]
-    metrics += ["nees", "nees_in_bounds"]
+    metrics = _metrics(doc["points"][0]["stats"]["filters"][labels[0]]["summary"])
     rows = []
     for p in doc["points"]:
         for l in labels:
             s = p["stats"]["filters"][l]["summary"]
-            rows.append([*(p["factors"][n] for n in names), l, *(s.get(m) for m in metrics), s["diverged"]])
-    header = [*(f"{n} x" for n in names), "filter", *metrics, "diverged"]
-    lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * len(header)) + "|"]
+            rows.append([*(p["values"][n] for n in names), l, *(s.get(m) for m in metrics), s.get("diverged", 0)])
+    heads = [n if "." in n else f"{n} x" for n in names]
+    header = [*heads, "filter", *metrics, "diverged"]
+    lines = ["| " + " | ".join(md_cell(h) for h in header) + " |", "|" + "|".join(["---"] * len(header)) + "|"]
     for r in rows:
-        cells = [f"{v:.4g}" for v in r[:len(names)]] + [md_cell(r[len(names)])] + [_fmt(v, "{:.4g}") for v in r[len(names) + 1:-1]] + [str(int(r[-1]))]
+        cells = ([f"{v:.4g}" for v in r[:len(names)]] + [md_cell(r[len(names)])]
+                 + [_fmt(v, "{:.4g}") for v in r[len(names) + 1:-1]] + [str(int(r[-1]))])
         lines.append("| " + " | ".join(cells) + " |")
     (tmp / "table.md").write_text("\n".join(lines) + "\n")
     buf = io.StringIO()
     csv.writer(buf).writerows([header, *([*r[:len(names) + 1], *map(_csv, r[len(names) + 1:-1]), r[-1]] for r in rows)])
     (tmp / "table.csv").write_text(buf.getvalue())
     summary_only = {
-        "name": exp.name, "runs": doc["runs"], "window": list(exp.window), "axes": doc["axes"], "wall_s": doc["wall_s"],
-        "points": [{"factors": p["factors"], "filters": {l: {"kind": f["kind"], "summary": f["summary"]}
-                                                           for l, f in p["stats"]["filters"].items()}}
+        "name": exp.name, "runs": doc["runs"], "window": list(exp.window), "axes": doc["axes"],
+        "titles": doc["titles"], "wall_s": doc["wall_s"], "compile_s": doc["compile_s"],
+        "points": [{"values": p["values"], "filters": {l: {"kind": f["kind"], "summary": f["summary"]}
+                                                        for l, f in p["stats"]["filters"].items()}}
                    for p in doc["points"]],
         "experiment": exp.raw,
     }
@@ -207,35 +362,53 @@ def _log_edges(values):
     return np.exp(np.concatenate([[v[0] - (mid[0] - v[0])], mid, [v[-1] + (v[-1] - mid[-1])]]))
 
 
+def _edges(values, log):
+    """Cell edges that put each cell's centre on its grid value (on a log axis: in log)."""
+    if log:
+        return _log_edges(values)
+    v = np.asarray(values, float)
+    if len(v) == 1:
+        half = 0.5 * abs(v[0]) or 0.5
+        return np.array([v[0] - half, v[0] + half])
+    mid = 0.5 * (v[1:] + v[:-1])
+    return np.concatenate([[v[0] - (mid[0] - v[0])], mid, [v[-1] + (v[-1] - mid[-1])]])
+
+
 def _plot(doc, names, labels, folder):
     from tracklab.report import pyplot
 
     plt = pyplot()
 
     axes_vals = [np.asarray(doc["axes"][n]) for n in names]
-    unit = doc.get("units", ("m",))[0]
-    for metric, title in (("rmse_pos", f"time-averaged position RMSE ({unit})"), ("nees", "average NEES"),
-                          ("pred_err_rms", f"RMS one-step prediction error ({unit})")):
+    titles, log = doc["titles"], doc["log"]
+    for metric, title in doc["metrics"]:
         # None (no healthy run at a point) -> NaN -> masked: left blank
         values = {l: np.ma.masked_invalid(np.array([p["stats"]["filters"][l]["summary"].get(metric)
                                                     for p in doc["points"]], float)) for l in labels}
+        if all(v.mask.all() for v in values.values()):
+            continue  # nothing to draw (e.g. no NEES in this world)
         if any(np.ma.is_masked(v) for v in values.values()):
             title += " — blank: no run without divergence"
+        positive = all(bool(np.all(v.compressed() > 0)) for v in values.values())
         fig, axs = plt.subplots(1, len(labels), figsize=(4.2 * len(labels), 3.6), squeeze=False)
         for ax, l in zip(axs[0], labels):
             vals = values[l]
             if len(names) == 1:
-                ax.loglog(axes_vals[0], vals, "o-")
-                ax.set_xlabel(f"{names[0]} scale factor")
+                ax.plot(axes_vals[0], vals, "o-")
+                ax.set_xscale("log" if log[names[0]] else "linear")
+                ax.set_yscale("log" if positive else "linear")
+                ax.set_xlabel(titles[names[0]])
+                ax.set_ylabel(title, fontsize=8)
                 ax.grid(True, which="both", alpha=0.3)
             else:
                 grid = vals.reshape(len(axes_vals[0]), len(axes_vals[1]))
-                im = ax.pcolormesh(_log_edges(axes_vals[1]), _log_edges(axes_vals[0]), np.ma.log10(grid))
-                ax.set_xscale("log")
-                ax.set_yscale("log")
-                ax.set_xlabel(f"{names[1]} scale factor")
-                ax.set_ylabel(f"{names[0]} scale factor")
-                fig.colorbar(im, ax=ax, label=f"log10 {metric}")
+                shown = np.ma.log10(grid) if positive else grid
+                im = ax.pcolormesh(_edges(axes_vals[1], log[names[1]]), _edges(axes_vals[0], log[names[0]]), shown)
+                ax.set_xscale("log" if log[names[1]] else "linear")
+                ax.set_yscale("log" if log[names[0]] else "linear")
+                ax.set_xlabel(titles[names[1]])
+                ax.set_ylabel(titles[names[0]])
+                fig.colorbar(im, ax=ax, label=f"log10 {metric}" if positive else metric)
             ax.set_title(l, fontsize=9)
         fig.suptitle(title)
         fig.tight_layout()

@@ -5,14 +5,18 @@ runs, so its gradient with respect to the filters' parameters flows through
 simulation, filtering and statistics. Each optimisation step draws a fresh
 batch of runs; the result is evaluated on held-out runs.
 
-Parameters are optimised in an unconstrained space:
+Parameters are optimised in an unconstrained space, the one their kind's declaration
+gives (``tracklab.filters.kind``: each parameter's constraint):
 
-* ``q``, ``r``, ``lam``, ``b``, ``q_e``, ``r_e``, ``r_guide`` (variances, the
-  tracking index, the STF's weakening factor): logarithms;
-* ``rho``, ``forget`` (the STF's and the DEKF's forgetting factors, in (0, 1)): logit;
-* ``w0`` (the DEKF's initial network weights): as they are;
+* positive ones (``q``, ``r``, ``lam``, ``b``, ``q_e``, ``r_e``, ``r_guide``, ``pw0``:
+  variances, the tracking index, the STF's weakening factor): logarithms;
+* ones in (0, 1] (``rho``, ``forget``: the STF's and the DEKF's forgetting factors): logit;
+* free ones (``w0``, the DEKF's initial network weights): as they are;
 * ``alpha``, ``beta`` (, ``gamma``): tuned together inside the α-β(-γ) stability
   region (Jury): α = 2σ(u), β = (4 − 2α)σ(v), γ = 4αβ/(2 − α)·σ(w), σ the logistic.
+
+Which parameters may be tuned (``TUNABLE``) and how a tuned value is written back
+into the experiment file are declared there too.
 
 Losses (time-averaged over the report window, summed over the tuned filters):
 
@@ -20,6 +24,14 @@ Losses (time-averaged over the report window, summed over the tuned filters):
 * ``pred_mse`` — one-step prediction mean-square error of the position;
 * ``nll`` — innovation negative log-likelihood ½(νᵀS⁻¹ν + log det S) per
   update (needs no truth).
+
+The closed loops tune through their own hooks (``tune_names``, ``tune_losses``,
+``tune_selection``, ``tune_start``, ``with_tuned``, ``write_tuned`` of an airborne or
+servo experiment): the airborne trackers' ``q_scale``, ``r_scale``, ``lam`` against the
+true pointing error (``pointing``) or the LOS-rate error (``los_rate``); the servo
+estimators' ``q`` against the tracking error (``track_mse``) or the rate error
+(``rate_mse``); all positive, tuned in their logarithms, the gradient through the whole
+closed loop (the estimate steers the antenna or the mount).
 """
 
 from __future__ import annotations
@@ -33,13 +45,11 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from tracklab.engine import make_chunk_fn
-
-GAINS = ("alpha", "beta", "gamma")
-POSITIVE = ("q", "r", "lam", "b", "q_e", "r_e", "r_guide", "pw0")
-UNIT = ("rho", "forget")
-FREE = ("w0",)  # unconstrained: the DEKF's initial network weights
-TUNABLE = POSITIVE + UNIT + FREE + GAINS
+from tracklab.filters.kind import FilterKind, WriteBack
+from tracklab.filters.registry import KINDS
+from tracklab.montecarlo import runner
+from tracklab.toml_fields import MAX_MAGNITUDE
+from tracklab.worlds import tracking
 
 
 def _window_mean(x, window):
@@ -58,90 +68,81 @@ LOSSES: dict[str, Callable] = {
 }
 
 
-def encode(params: dict, names) -> dict:
-    """Unconstrained coordinates of the named parameters."""
-    theta = {}
+def _constrained_together(kind: FilterKind, params: dict, names):
+    """(constraint, the parameters it transforms together) for the named parameters of a filter."""
+    groups = []
     for n in names:
-        if n in POSITIVE:
-            theta[n] = jnp.log(jnp.asarray(params[n], float))
-        elif n in UNIT:
-            theta[n] = jax.scipy.special.logit(jnp.minimum(jnp.asarray(params[n], float), 1.0 - 1e-6))
-        elif n in FREE:
-            theta[n] = jnp.asarray(params[n], float)
-    gains = [g for g in GAINS if g in params]
-    if any(g in names for g in GAINS):
-        a = jnp.asarray(params["alpha"], float)
-        b = jnp.asarray(params["beta"], float)
-        theta["alpha"] = jax.scipy.special.logit(a / 2)
-        theta["beta"] = jax.scipy.special.logit(b / (4 - 2 * a))
-        if "gamma" in gains:
-            g = jnp.asarray(params["gamma"], float)
-            theta["gamma"] = jax.scipy.special.logit(g * (2 - a) / (4 * a * b))
+        c = kind.params[n].constraint
+        group = (c, tuple(m for m in c.members if m in params) if c.members else (n,))
+        if group not in groups:
+            groups.append(group)
+    return groups
+
+
+def encode(kind: FilterKind, params: dict, names) -> dict:
+    """Unconstrained coordinates of the named parameters of a filter of ``kind``."""
+    theta = {}
+    for c, group in _constrained_together(kind, params, names):
+        theta.update(c.encode({n: params[n] for n in group}))
     return theta
 
 
-def decode(theta: dict, params: dict) -> dict:
+def decode(kind: FilterKind, theta: dict, params: dict) -> dict:
     """Parameters with the tuned ones replaced by their constrained values."""
     out = dict(params)
-    for n in POSITIVE:
-        if n in theta:
-            out[n] = jnp.exp(theta[n])
-    for n in UNIT:
-        if n in theta:
-            out[n] = jax.nn.sigmoid(theta[n])
-    for n in FREE:
-        if n in theta:
-            out[n] = theta[n]
-    if "alpha" in theta:
-        a = 2 * jax.nn.sigmoid(theta["alpha"])
-        b = (4 - 2 * a) * jax.nn.sigmoid(theta["beta"])
-        out["alpha"], out["beta"] = a, b
-        if "gamma" in theta:
-            out["gamma"] = 4 * a * b / (2 - a) * jax.nn.sigmoid(theta["gamma"])
+    for c, group in _constrained_together(kind, params, theta):
+        out.update(c.decode({n: theta[n] for n in group}))
     return out
 
 
-MAX_MAGNITUDE = 1e15  # what an experiment file accepts (tracklab.config)
-
-
-def acceptable(params: dict, names) -> str | None:
+def acceptable(kind: FilterKind, params: dict, names) -> str | None:
     """Why the named parameter values could not be written into an experiment file that
     ``tracklab run`` accepts (None if they can)."""
     for n in names:
-        if n not in params or n in FREE:
+        p = kind.params[n]
+        if n not in params or p.write is None:  # a file holds none
             continue
         v = np.asarray(params[n], float)
         if not np.all(np.isfinite(v)):
             return f"{n} is not finite"
-        if n in POSITIVE and not np.all((v >= 1e-300) & (v <= MAX_MAGNITUDE)):
-            return f"{n} leaves [1e-300, {MAX_MAGNITUDE:g}]"
-        if n in UNIT and not np.all((v > 0) & (v <= 1)):
-            return f"{n} leaves (0, 1]"
-        if n in GAINS and not np.all((v > 0) & (v < 4)):
-            return f"{n} leaves (0, 4)"
+        if not np.all(p.constraint.inside(v)):
+            return f"{n} leaves {p.constraint.bounds}"
     return None
+
+
+def _write_back(exp, fc) -> WriteBack:
+    from tracklab.config import SENSOR_SIGMAS
+
+    _, meas = exp.view(fc)
+    return WriteBack(fc.model, meas.kind, SENSOR_SIGMAS.get(meas.kind, ()))
 
 
 def unwritable(exp, chosen: dict) -> str | None:
     """Why the tuned values of ``chosen`` ({label: names}) could not be written back into the
     experiment file (None if they can): checked before tuning starts."""
-    for fc in exp.filters:
-        names = chosen.get(fc.label, ())
-        if "w0" in names:
-            return f"filter {fc.label!r}: network weights (w0) are tuned through the Python API; a file holds none"
-        if "r" in names and "r" not in exp.raw["filter"][exp.filters.index(fc)]:
-            from tracklab.config import SENSOR_SIGMAS
+    import copy
 
-            _, meas = exp.view(fc)
-            if meas.kind not in SENSOR_SIGMAS:  # written back as the one sensor's sigmas
-                return (f"filter {fc.label!r} sees several sensors: its r cannot be written back as sensor sigmas "
-                        f"(give the filter r = [...] in the file to tune it)")
+    if hasattr(exp, "write_tuned"):
+        return None  # the closed loops' tuned numbers are [[tracker]] / [[estimator]] fields
+
+    for fc, table in zip(exp.filters, exp.raw["filter"]):
+        kind = KINDS[fc.kind]
+        for n in chosen.get(fc.label, ()):
+            p = kind.params[n]
+            if p.write is None:
+                return f"filter {fc.label!r}: {n} ({p.doc}) is tuned through the Python API; a file holds none"
+            try:
+                p.write(copy.deepcopy(table), n, fc.params[n], _write_back(exp, fc))
+            except ValueError as e:
+                return f"filter {fc.label!r}: {e}"
     return None
 
 
 def memory_bytes(exp, runs_per_step, eval_runs=None) -> float:
     """A lower bound: the filter states reverse mode keeps for every run and step of a batch,
     and the held-out evaluation's random draws."""
+    if hasattr(exp, "tune_memory_bytes"):
+        return exp.tune_memory_bytes(runs_per_step)
     n = [(3 if fc.model == "ca" else 2) * exp.dim for fc in exp.filters]  # each filter's state dimension
     state = sum(k * (1 + k) for k in n)  # its mean and covariance
     n_eval = eval_runs or min(exp.runs, 2000)
@@ -149,13 +150,20 @@ def memory_bytes(exp, runs_per_step, eval_runs=None) -> float:
     return runs_per_step * exp.steps * state * 8.0 + min(n_eval, 1000) * exp.steps * width * 4.0
 
 
+def tunes(kind: str, params: dict, name) -> bool:
+    """Whether a filter of ``kind`` with ``params`` has the parameter ``name``, tunable."""
+    return name in params and KINDS[kind].params[name].tune
+
+
 def selection(exp, names, labels=None) -> dict[str, tuple[str, ...]]:
-    """Which parameters of which filters are tuned: {label: names}."""
+    """Which parameters of which filters (trackers, estimators) are tuned: {label: names}."""
+    if hasattr(exp, "tune_selection"):
+        return exp.tune_selection([n for n in names if n in exp.tune_names], labels)
     chosen = {}
     for fc in exp.filters:
         if labels and fc.label not in labels:
             continue
-        have = tuple(n for n in names if n in fc.params)
+        have = tuple(n for n in names if tunes(fc.kind, fc.params, n))
         if have:
             chosen[fc.label] = have
     return chosen
@@ -163,37 +171,81 @@ def selection(exp, names, labels=None) -> dict[str, tuple[str, ...]]:
 
 @dataclass
 class Objective:
-    """loss(theta, key, idx, live) for the selected parameters of an experiment."""
+    """loss(theta, key, idx, live) for the selected parameters of an experiment (any world)."""
 
     loss: Callable
-    theta0: dict
-    base: list  # each filter's parameters (pytree)
-    labels: list
-    chosen: dict
+    theta0: dict  # label -> unconstrained coordinates of its tuned parameters
+    values: Callable  # theta -> {label: {name: value}}, the tuned parameters' constrained values
+    chosen: dict  # label -> names
+    why_not: Callable  # {label: {name: value}} -> why a file could not hold them (None if it can)
 
-    def params(self, theta):
-        return [decode(theta[l], p) if l in theta else p for l, p in zip(self.labels, self.base)]
+    @property
+    def initial(self) -> dict:
+        return self.values(self.theta0)
 
 
 def objective(exp, names, loss="mse_pos", labels=None) -> Objective:
-    specs = exp.filter_specs()
     chosen = selection(exp, names, labels)
     if not chosen:
         raise ValueError(f"no filter has any of the parameters {', '.join(names)}")
+    if hasattr(exp, "tune_selection"):
+        return _closed_loop_objective(exp, chosen, loss)
     # products as outer-product sums: element by element, the gradient compiles slowly
-    fn = make_chunk_fn(exp.scenario, exp.sensor, specs, exp.prior_covariance(), exp.dt, elementwise=False)
-    base = [s.filter.params for s in specs]
-    labels_all = [s.label for s in specs]
-    theta0 = {l: encode(base[labels_all.index(l)], ns) for l, ns in chosen.items()}
+    structure = exp.structure(elementwise=False)
+    fn = runner.sharded(tracking.world(structure))
+    params = exp.params()
+    base = params.filters
+    labels_all = structure.labels
+    kinds = [KINDS[f.kind] for f in structure.filters]
+    at = {l: labels_all.index(l) for l in chosen}
+    theta0 = {l: encode(kinds[at[l]], base[at[l]], ns) for l, ns in chosen.items()}
     loss_fn = LOSSES[loss]
     window = exp.window
 
+    def filters(theta):
+        return [decode(k, theta[l], f) if l in theta else f for k, l, f in zip(kinds, labels_all, base)]
+
     def total(theta, key, idx, live):
-        params_list = [decode(theta[l], p) if l in theta else p for l, p in zip(labels_all, base)]
-        sums = fn(params_list, key, idx, live)
+        p = params._replace(filters=filters(theta))
+        sums = tracking.unpack(fn(p, key, idx, live, jnp.zeros((len(labels_all), idx.shape[0]), bool)), exp.dim)
         return sum(loss_fn(sums[l], window) for l in chosen)
 
-    return Objective(total, theta0, base, labels_all, chosen)
+    def values(theta):
+        f = filters(theta)
+        return {l: {n: f[at[l]][n] for n in ns} for l, ns in chosen.items()}
+
+    def why_not(vals):
+        return next((why for l, v in vals.items() if (why := acceptable(kinds[at[l]], v, chosen[l]))), None)
+
+    return Objective(total, theta0, values, chosen, why_not)
+
+
+def _closed_loop_objective(exp, chosen, loss) -> Objective:
+    """The airborne or servo world's: every tuned number is positive (tuned in its logarithm)."""
+    structure = exp.structure()
+    fn = runner.sharded(exp.world(structure))
+    params = exp.params()
+    lanes = getattr(exp, "tune_lanes", lambda c: list(c))(chosen)
+    loss_fn = exp.tune_losses[loss]
+    theta0 = {l: {n: jnp.log(jnp.asarray(v, float)) for n, v in vals.items()}
+              for l, vals in exp.tune_start(chosen).items()}
+
+    def values(theta):
+        return {l: {n: jnp.exp(u) for n, u in t.items()} for l, t in theta.items()}
+
+    def total(theta, key, idx, live):
+        p = exp.with_tuned(params, values(theta))
+        sums = fn(p, key, idx, live, jnp.zeros((len(structure.labels), idx.shape[0]), bool))
+        return sum(loss_fn(sums[l]) for l in lanes)
+
+    def why_not(vals):
+        for l, v in vals.items():
+            for n, x in v.items():
+                if not (np.isfinite(float(x)) and 1e-300 <= float(x) <= MAX_MAGNITUDE):
+                    return f"{l}: {n} leaves [1e-300, {MAX_MAGNITUDE:g}]"
+        return None
+
+    return Objective(total, theta0, values, chosen, why_not)
 
 
 @dataclass
@@ -206,8 +258,9 @@ class TuneResult:
     stopped: str = ""
 
 
-def _floats(p, names):
-    return {n: np.asarray(p[n]).tolist() for n in names}
+def _floats(values: dict) -> dict:
+    """{label: {name: value}} as plain numbers (and lists)."""
+    return {l: {n: np.asarray(v).tolist() for n, v in vals.items()} for l, vals in values.items()}
 
 
 def tune(exp, names, *, steps=200, lr=0.05, loss="mse_pos", runs_per_step=None, eval_runs=None, seed=None,
@@ -224,7 +277,7 @@ def tune(exp, names, *, steps=200, lr=0.05, loss="mse_pos", runs_per_step=None, 
     opt = optax.adam(lr)
     theta = obj.theta0
     state = opt.init(theta)
-    result = TuneResult(params={}, initial={l: _floats(obj.base[obj.labels.index(l)], n) for l, n in obj.chosen.items()})
+    result = TuneResult(params={}, initial=_floats(obj.initial))
 
     def evaluate(th):
         e_idx = jnp.arange(n_eval, dtype=jnp.uint32)
@@ -250,29 +303,28 @@ def tune(exp, names, *, steps=200, lr=0.05, loss="mse_pos", runs_per_step=None, 
             progress(k, val, gnorm)
         updates, new_state = opt.update(g, state, theta)
         new_theta = optax.apply_updates(theta, updates)
-        why = next((acceptable(p, obj.chosen[l]) for l, p in zip(obj.labels, obj.params(new_theta))
-                    if l in obj.chosen and acceptable(p, obj.chosen[l])), None)
+        why = obj.why_not(obj.values(new_theta))
         if why:  # the step would leave what an experiment file accepts
             result.stopped = f"stopped after step {k}: the next step's {why}; kept the parameters of step {k}"
             break
         theta, state = new_theta, new_state
-    tuned = obj.params(theta)
-    result.params = {l: _floats(tuned[obj.labels.index(l)], n) for l, n in obj.chosen.items()}
+    result.params = _floats(obj.values(theta))
     result.eval_tuned = evaluate(theta)
     return result
 
 
 def tuned_document(exp, result: TuneResult, out_path) -> dict:
-    """The experiment file with the tuned values written into its filters."""
+    """The experiment file with the tuned values written into its filters (each as its kind declares)."""
     import copy
     import os
     from pathlib import Path
 
-    from tracklab.config import SENSOR_SIGMAS
-
     doc = copy.deepcopy(exp.raw)
     doc.pop("study", None)  # the tuned file is a result: its studies stay with the original
     doc["experiment"]["name"] = f"{exp.name}_tuned"
+    if hasattr(exp, "write_tuned"):  # airborne trackers, servo estimators
+        exp.write_tuned(doc, result.params)
+        return doc
     out_dir = Path(out_path).resolve().parent
     sc = doc.get("scenario", {})
     if "path" in sc:  # keep the trajectory reachable from the new file's folder
@@ -282,39 +334,13 @@ def tuned_document(exp, result: TuneResult, out_path) -> dict:
         if not tuned:
             continue
         table["label"] = f"{fc.label}, tuned"
-        if "q" in tuned:
-            if "q" in table:
-                table["q"] = float(tuned["q"])
-            else:
-                key = "accel_sigma" if fc.model == "cv" else "accel_increment_sigma"
-                table[key] = math.sqrt(float(tuned["q"]))
-        for k in ("rho", "b", "q_e", "forget", "pw0"):
-            if k in tuned:
-                table[k] = float(tuned[k])
-        if "w0" in tuned:
-            raise ValueError(f"filter {fc.label!r}: tuned network weights cannot be written into an experiment file")
-        for k in ("r_e", "r_guide"):
-            if k in tuned:
-                table[k] = [float(v) for v in np.atleast_1d(tuned[k])]
-        if "r" in tuned and "r" in table:
-            table["r"] = [float(v) for v in np.atleast_1d(tuned["r"])]
-        elif "r" in tuned:
-            _, meas = exp.view(fc)
-            sig = [math.sqrt(v) for v in np.atleast_1d(tuned["r"])]
-            if meas.kind == "cartesian":
-                table["sigma"] = sig
-            elif meas.kind in SENSOR_SIGMAS:
-                table.update(dict(zip(SENSOR_SIGMAS[meas.kind], sig)))
-            else:
-                raise ValueError(f"filter {fc.label!r} sees several sensors: its R cannot be written back")
-        if any(g in tuned for g in GAINS):
-            for g in GAINS:
-                if g in tuned:
-                    table[g] = tuned[g]
-            table["gains"] = "explicit"
-            for k in ("tracking_index", "sigma_w", "floor"):
-                table.pop(k, None)
-        if "lam" in tuned:
-            table["tracking_index"] = list(np.atleast_1d(tuned["lam"]).tolist())
-            table.pop("sigma_w", None)
+        for name, p in KINDS[fc.kind].params.items():  # in the order the kind declares them
+            if name not in tuned:
+                continue
+            if p.write is None:
+                raise ValueError(f"filter {fc.label!r}: tuned {name} ({p.doc}) cannot be written into an experiment file")
+            try:
+                p.write(table, name, tuned[name], _write_back(exp, fc))
+            except ValueError as e:
+                raise ValueError(f"filter {fc.label!r}: {e}") from None
     return doc

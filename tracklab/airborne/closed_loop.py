@@ -46,12 +46,15 @@ class LoopConfig(NamedTuple):
     jolt_tick: int = -1  # tick at which the antenna is jolted (-1: never)
     jolt: float = 0.0  # rad, about the d axis
     singer: bool = True  # add the Singer perturbation to the nominal path
+    singer_phi: object = None  # (3, 3) one tick's Singer transition; None: from the engagement
+    singer_L: object = None  # (3, 3) Cholesky factor of one tick's Singer noise (zeros without it)
 
 
-def prior_sd(cfg: LoopConfig, sigma_m, sigma_r):
-    """Standard deviations of the trackers' prior (the designation's errors, Singer σ for accelerations)."""
-    se, sw, sr, sv = cfg.acquisition
-    return np.array([se, sw, sigma_m, se, sw, sigma_m, sr, sv, sigma_r])
+def singer_tick(eng: Engagement, dt, singer=True):
+    """(Φ, L) of one tick of the Singer perturbation, computed in float64 on the host
+    (``singer_block``): the transition and the Cholesky factor of its noise (zeros when off)."""
+    phi, Q = singer_block(dt, float(eng.singer_tau), float(eng.singer_sigma))
+    return phi, (np.linalg.cholesky(Q) if singer else np.zeros((3, 3)))
 
 
 def truth(eng: Engagement, t, s):
@@ -66,8 +69,7 @@ def engage(eng: Engagement, tracker: Tracker, params, cfg: LoopConfig, sd0, key)
     tm = cfg.timing
     dt, n = tm.dt, tm.n
     dtype = jnp.result_type(float)
-    phi, Q = singer_block(dt, eng.singer_tau, eng.singer_sigma)
-    L = np.linalg.cholesky(Q) if cfg.singer else np.zeros((3, 3))
+    phi, L = (cfg.singer_phi, cfg.singer_L) if cfg.singer_phi is not None else singer_tick(eng, dt, cfg.singer)
     phi, L = jnp.asarray(phi, dtype), jnp.asarray(L, dtype)
     k = jnp.asarray(cfg.k, dtype)
     sigma = jnp.asarray(cfg.sigma, dtype)

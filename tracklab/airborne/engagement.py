@@ -17,7 +17,6 @@ velocity and acceleration are sampled exactly at the radar's sample period
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import jax
@@ -27,6 +26,7 @@ import numpy as np
 G0 = 9.80665  # m/s², one g
 
 
+@jax.tree_util.register_dataclass
 @dataclass(frozen=True)
 class Engagement:
     own_speed: float = 250.0
@@ -53,18 +53,18 @@ class Engagement:
     def target(self, t):
         """Nominal target position, velocity and acceleration at time(s) t, each (..., 3)."""
         t = jnp.asarray(t, float)
-        V, psi0 = self.target_speed, math.radians(self.target_heading)
+        V, psi0 = self.target_speed, jnp.radians(self.target_heading)
         ts, te = self.turn_start, self.turn_end
         omega = self.turn_direction * self.turn_g * G0 / V  # turn rate, rad/s
         before = jnp.minimum(t, ts)
         turning = jnp.clip(t - ts, 0.0, te - ts)
         after = jnp.maximum(t - te, 0.0)
         psi = psi0 + omega * turning
-        c0, s0, c, s = math.cos(psi0), math.sin(psi0), jnp.cos(psi), jnp.sin(psi)
-        if omega == 0.0:
-            arc_x, arc_y = V * turning * c0, V * turning * s0
-        else:  # ∫ V (cos ψ, sin ψ) dt over the arc
-            arc_x, arc_y = V / omega * (s - s0), V / omega * (c0 - c)
+        c0, s0, c, s = jnp.cos(psi0), jnp.sin(psi0), jnp.cos(psi), jnp.sin(psi)
+        straight = omega == 0.0  # no turn: the arc is a line
+        w = jnp.where(straight, 1.0, omega)
+        arc_x = jnp.where(straight, V * turning * c0, V / w * (s - s0))  # ∫ V (cos ψ, sin ψ) dt over the arc
+        arc_y = jnp.where(straight, V * turning * s0, V / w * (c0 - c))
         x = self.target_range + V * before * c0 + arc_x + V * after * c
         y = self.target_offset + V * before * s0 + arc_y + V * after * s
         z = jnp.zeros_like(t) + self.target_height

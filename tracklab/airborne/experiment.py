@@ -65,10 +65,10 @@ and noise), so differences between trackers are paired.
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 
 from tracklab.errors import ConfigError
@@ -120,7 +120,7 @@ class AirborneExperiment:
     precision: str = "float64"
     also_runs: tuple = ()
     studies: list = field(default_factory=list)
-    chunk: int = 100
+    chunk: int | None = None  # runs per chunk; None: default_chunk()
 
     @property
     def period(self) -> float:
@@ -134,89 +134,152 @@ class AirborneExperiment:
     def window(self):
         return (1, self.steps)
 
-    def loop_config(self):
-        from tracklab.airborne.closed_loop import LoopConfig
+    def timing(self):
         from tracklab.airborne.tracker import Timing
 
-        jolt_tick, jolt = -1, 0.0
-        if self.disturbance is not None:
-            jolt_tick, jolt = int(round(self.disturbance[0] / self.sample_dt)), self.disturbance[1]
-        return LoopConfig(Timing(self.sample_dt, self.average, self.antenna_lag), self.steps, self.gains, self.noise,
-                          self.limits, self.acquisition, jolt_tick, jolt, self.singer)
+        return Timing(self.sample_dt, self.average, self.antenna_lag)
 
-    def build(self, tc: TrackerConfig):
-        """(tracker, params) of one [[tracker]] table."""
-        import jax.numpy as jnp
+    def default_chunk(self) -> int:
+        """Runs per chunk when the file does not say: 32 per device (each run is thousands of
+        radar samples); fixed by the structure, never by the run count."""
+        import jax
 
+        return 32 * jax.device_count()
+
+    def structure(self, chunk=None):
+        """What the compiled program depends on: timing, periods, jolt tick, Singer on/off, the
+        trackers' kinds and the chunk size."""
+        from tracklab.airborne.world import AirborneStructure, TrackerSpec
+
+        jolt_tick = int(round(self.disturbance[0] / self.sample_dt)) if self.disturbance is not None else -1
+        trackers = tuple(TrackerSpec(tc.label, tc.kind, tc.range_velocity) for tc in self.trackers)
+        return AirborneStructure(trackers, self.timing(), self.steps, jolt_tick, self.singer,
+                                 int(chunk or self.chunk or self.default_chunk()))
+
+    def params(self):
+        """Every number of the experiment, as the compiled program's argument."""
+        from tracklab.airborne.closed_loop import singer_tick
+        from tracklab.airborne.world import AirborneParams
+
+        phi, L = singer_tick(self.engagement, self.sample_dt, self.singer)
+        trackers, sd0 = [], []
+        for tc in self.trackers:
+            p, s = self.tracker_params(tc)
+            trackers.append(p)
+            sd0.append(s)
+        return AirborneParams(self.engagement, np.asarray(self.gains, float), np.asarray(self.noise, float),
+                              np.asarray(self.limits, float), np.asarray(self.acquisition, float),
+                              float(self.disturbance[1]) if self.disturbance is not None else 0.0, phi, L, trackers, sd0)
+
+    def tracker_params(self, tc: TrackerConfig, q_scale=None, r_scale=None, lam=None):
+        """(parameters, prior standard deviations) of one [[tracker]] table (``q_scale``, ``r_scale``,
+        ``lam``: values in place of the table's, possibly traced: what tuning varies)."""
         from tracklab.airborne.boresight import ModelParams
-        from tracklab.airborne.cd_ekf import CDParams, cd_ekf
-        from tracklab.airborne.classical import ClassicalParams, classical, loop_gains
-        from tracklab.airborne.decoupled import decoupled
-        from tracklab.airborne.moose import MooseParams, moose
+        from tracklab.airborne.cd_ekf import CDParams
+        from tracklab.airborne.classical import ClassicalParams, loop_gains
+        from tracklab.airborne.moose import MooseParams
 
-        timing = self.loop_config().timing
-        k = jnp.asarray(self.gains, float)
+        timing = self.timing()
+        acq = self.acquisition
+        sm_r = (tc.model[0], tc.model[2]) if tc.model else (self.engagement.singer_sigma,) * 2
+        sd0 = np.array([acq[0], acq[1], sm_r[0], acq[0], acq[1], sm_r[0], acq[2], acq[3], sm_r[1]], float)
+        k = np.asarray(self.gains, float)
         if tc.kind == "classical":
             g_r, g_v = loop_gains(self.engagement.singer_sigma, self.engagement.singer_tau, self.noise[2], self.noise[3], timing)
-            return classical(timing), ClassicalParams(k, g_r, g_v)
+            return ClassicalParams(k, np.asarray(g_r, float), np.asarray(g_v, float)), sd0
         sm, tau, sr, tr = tc.model or (self.engagement.singer_sigma, self.engagement.singer_tau,
                                        self.engagement.singer_sigma, self.engagement.singer_tau)
-        q = math.sqrt(tc.q_scale)  # Q ∝ σ²
-        mp = ModelParams(*(jnp.asarray(v, float) for v in (q * sm, tau, q * sr, tr)))
-        r = tc.r_scale * (k * jnp.asarray(self.noise, float)) ** 2
-        params = CDParams(mp, r, k, jnp.asarray(tc.lam, float))
+        q_scale = tc.q_scale if q_scale is None else q_scale
+        r_scale = tc.r_scale if r_scale is None else r_scale
+        lam = tc.lam if lam is None else lam
+        q = q_scale ** 0.5  # Q ∝ σ²
+        mp = ModelParams(q * np.asarray(sm, float), np.asarray(tau, float), q * np.asarray(sr, float),
+                         np.asarray(tr, float))
+        r = r_scale * (k * np.asarray(self.noise, float)) ** 2
+        params = CDParams(mp, r, k, lam * np.ones((), float))
         if tc.kind == "moose":
-            return moose(timing), MooseParams(params, jnp.asarray(tc.levels, float), jnp.asarray(tc.p_stay, float))
-        tracker = cd_ekf(timing) if tc.kind == "cd_ekf" else decoupled(timing, tc.range_velocity == "separate")
-        return tracker, params
+            return MooseParams(params, np.asarray(tc.levels, float), np.asarray(tc.p_stay, float)), sd0
+        return params, sd0
 
     def nominal_range(self):
         t = self.period * np.arange(1, self.steps + 1)
         e = self.engagement
         return np.linalg.norm(np.asarray(e.target(t)[0] - e.own(t)[0]), axis=-1)
 
-    def monte_carlo(self, runs=None, seed=None, progress=None, precision=None):
-        """Per-period sums over runs for every tracker: {label: sums}, wall and compile seconds."""
-        import jax
-        import jax.numpy as jnp
+    sweep_metrics = (("rmse_pos", "true pointing error RMS (mrad)"), ("rmse_vel", "LOS-rate error RMS (mrad/s)"),
+                      ("nees", "average NEES (9 states)"))
+    units = ("mrad", "mrad/s")
 
-        from tracklab.airborne.closed_loop import engage, prior_sd, sums
+    def world(self, structure):
+        from tracklab.airborne.world import world
 
-        runs = runs or self.runs
-        seed = self.seed if seed is None else seed
-        precision = precision or self.precision
-        cfg = self.loop_config()
-        out, compile_s = {}, 0.0
-        t_start = time.perf_counter()
-        chunk = min(self.chunk, runs)
-        n_chunks = -(-runs // chunk)
-        with jax.enable_x64(precision == "float64"):
-            dtype = jnp.result_type(float)
-            keys = jax.random.split(jax.random.key(seed), runs)  # run i's key whatever the chunk size
-            keys = jnp.concatenate([keys, jnp.repeat(keys[-1:], n_chunks * chunk - runs, axis=0)])  # padding, masked
-            live_all = np.arange(n_chunks * chunk) < runs
-            for ti, tc in enumerate(self.trackers):
-                tracker, params = self.build(tc)
-                params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), params)
-                sd0 = prior_sd(cfg, *((tc.model[0], tc.model[2]) if tc.model else (self.engagement.singer_sigma,) * 2))
+        return world(structure)
 
-                @jax.jit
-                def batch(keys, live, params=params, tracker=tracker):
-                    res = jax.vmap(lambda k: engage(self.engagement, tracker, params, cfg, sd0, k))(keys)
-                    return sums(res, live)
+    def scaled(self, params, factors: dict):
+        """``params`` with the trackers' Q (q: the Singer σ's squared) and R (r) scaled (the classical
+        loops have neither)."""
+        from tracklab.airborne.classical import ClassicalParams
+        from tracklab.airborne.moose import MooseParams
 
-                acc = None
-                for c in range(n_chunks):
-                    t0 = time.perf_counter()
-                    s = jax.device_get(batch(keys[c * chunk:(c + 1) * chunk], jnp.asarray(live_all[c * chunk:(c + 1) * chunk])))
-                    if c == 0 and ti == 0:
-                        compile_s = time.perf_counter() - t0
-                    s = {k: np.asarray(v, np.float64) for k, v in s.items()}
-                    acc = s if acc is None else {k: acc[k] + s[k] for k in acc}
-                    if progress:
-                        progress(ti * runs + min((c + 1) * chunk, runs), len(self.trackers) * runs)
-                out[tc.label] = acc
-        return out, time.perf_counter() - t_start, compile_s
+        q, r = factors.get("q", 1.0), factors.get("r", 1.0)
+
+        def scale(p):
+            if isinstance(p, ClassicalParams):
+                return p
+            if isinstance(p, MooseParams):
+                return p._replace(base=scale(p.base))
+            m = p.model
+            s = np.sqrt(q)
+            return p._replace(model=m._replace(sigma_m=m.sigma_m * s, sigma_r=m.sigma_r * s), r=p.r * r)
+
+        return params._replace(trackers=[scale(p) for p in params.trackers])
+
+    def summarise(self, structure, params, sums, out) -> dict:
+        return self.document(sums, out.runs, out.wall_s, out.compile_s, self.precision)
+
+    # tuning (tracklab.tune): the [[tracker]] fields q_scale, r_scale and lam of the filtering trackers
+    tune_names = ("q_scale", "r_scale", "lam")
+    tune_losses = {
+        # mean over the filter periods of the mean-square true pointing error (rad²) of the runs in lock
+        "pointing": lambda s: jnp.mean(s["sum_point2"] / jnp.maximum(s["n"], 1.0)),
+        # the same of the LOS-rate estimate's error ((rad/s)², both axes)
+        "los_rate": lambda s: jnp.mean((s["sum_e2"][:, 1] + s["sum_e2"][:, 4]) / jnp.maximum(s["n"], 1.0)),
+    }
+
+    def tune_selection(self, names, labels=None) -> dict:
+        return {tc.label: tuple(names) for tc in self.trackers
+                if tc.kind != "classical" and (not labels or tc.label in labels)}
+
+    def tune_start(self, chosen) -> dict:
+        by = {tc.label: tc for tc in self.trackers}
+        return {l: {n: float(getattr(by[l], n)) for n in names} for l, names in chosen.items()}
+
+    def with_tuned(self, params, values: dict):
+        """``params`` with the trackers' q_scale, r_scale, lam from ``values`` ({label: {name: value}})."""
+        trackers = list(params.trackers)
+        for i, tc in enumerate(self.trackers):
+            if tc.label in values:
+                trackers[i] = self.tracker_params(tc, **values[tc.label])[0]
+        return params._replace(trackers=trackers)
+
+    def write_tuned(self, doc, values: dict):
+        for table, tc in zip(doc["tracker"], self.trackers):
+            if tc.label in values:
+                table.update({n: float(v) for n, v in values[tc.label].items()})
+                table["label"] = f"{tc.label}, tuned"
+
+    def tune_memory_bytes(self, runs_per_step) -> float:
+        """Reverse mode keeps every run's loop state (tracker, antenna, truth: ~200 values) per tick."""
+        return runs_per_step * self.ticks * len(self.trackers) * 200 * 8.0
+
+    def monte_carlo(self, runs=None, seed=None, progress=None, precision=None, chunk=None):
+        """Per-period sums over runs for every tracker: ({label: sums}, wall seconds, compile seconds)."""
+        from tracklab.airborne.world import world
+        from tracklab.montecarlo import runner
+
+        out = runner.run(world(self.structure(chunk)), self.params(), runs or self.runs,
+                         self.seed if seed is None else seed, precision=precision or self.precision, progress=progress)
+        return out.sums, out.wall_s, out.compile_s
 
     @property
     def ticks(self) -> int:
@@ -225,10 +288,9 @@ class AirborneExperiment:
 
     def memory_bytes(self, runs=None) -> float:
         """A lower bound: a chunk's per-period outputs (error, NEES, pointing, range: 12 values a
-        run and period), the per-period statistics on the host, and every run's key (padded
-        copy and live mask included)."""
-        runs = runs or self.runs
-        return min(self.chunk, runs) * self.steps * 12 * 8.0 + len(self.trackers) * self.steps * 16 * 8.0 + runs * 24.0
+        run and period) and the per-period statistics on the host."""
+        chunk = self.structure().chunk
+        return chunk * self.steps * 12 * 8.0 + len(self.trackers) * self.steps * 16 * 8.0
 
     def check_memory(self, runs=None, limit=None):
         from tracklab.memory import check
@@ -425,6 +487,7 @@ def load_airborne_experiment(f: Path, raw: dict, section) -> AirborneExperiment:
     check_sections(f, raw, ("experiment", "tracker"), ("experiment", "airborne", "engagement", "noise", "acquisition",
                                                       "disturbance", "tracker", "report"), "an airborne experiment")
     name, runs, seed, precision, ex = experiment_header(f, raw, section)
+    chunk = ex.integer("chunk", None, lo=1, hi=100_000)
     ex.check_unknown()
     ab = section(f, "airborne", raw["airborne"])
     duration = ab.number("duration", 39.0, positive=True, hi=3600.0)
@@ -528,4 +591,5 @@ def load_airborne_experiment(f: Path, raw: dict, section) -> AirborneExperiment:
         trackers.append(TrackerConfig(label, kind, lam, q_scale, r_scale, rv, model, levels, p_stay))
     windows = _read_windows(f, raw.get("report"), duration, disturbance)
     return AirborneExperiment(f, name, runs, seed, duration, sample_dt, average, lag, limits, eng, singer, noise,
-                              tuple(float(g) for g in gains), acquisition, disturbance, trackers, windows, raw, precision)
+                              tuple(float(g) for g in gains), acquisition, disturbance, trackers, windows, raw, precision,
+                              chunk=chunk)

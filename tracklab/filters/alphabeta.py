@@ -22,6 +22,7 @@ converted to Cartesian positions (plain or unbiased conversion).
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import jax
@@ -29,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab.filters.core import Filter, Out, masked_meas, select, symmetrise
+from tracklab.filters.kind import NOISE, Constraint, Entry, FilterKind, Param, noise, positive, stable_gains, write_value
 from tracklab.linalg import mm
 from tracklab.sensors import CONVERSIONS
 
@@ -168,3 +170,108 @@ def model_alpha_beta(model, sensor, params, gains="kalata", floor=None, conversi
         return post, out
 
     return Filter(init=init, step=step, params=params, coast=coast)
+
+
+# ------------------------------------------------------------------------- declarations
+
+GAIN_NAMES = ("alpha", "beta", "gamma")
+
+
+def _gain(e: Entry, key):
+    """An explicit gain: a number, or one per axis, in (0, 4)."""
+    v = e.get(key)
+    if v is None:
+        raise e.error(key, None, "is required for explicit gains")
+    vals = v if isinstance(v, list) else [v]
+    if any(isinstance(x, bool) or not isinstance(x, (int, float)) or not 0 < x < 4 for x in vals):
+        raise e.error(key, v, "must be a number (or one per axis) in (0, 4)")
+    return tuple(float(x) for x in vals) if isinstance(v, list) else float(v)
+
+
+def _reader(order):
+    kind, need = ("alpha_beta", "cv") if order == 2 else ("alpha_beta_gamma", "ca")
+    names = GAIN_NAMES[:order]
+
+    def read(e: Entry):
+        model = e.motion_model(need)
+        if model != need:
+            raise e.error("model", model, f"{kind} works on the {need} model")
+        params = noise(e, model)
+        options = {}
+        explicit = any(e.has(g) for g in names)
+        gains = e.string("gains", "explicit" if explicit else "kalata", choices=("kalata", "growing_memory", "explicit"))
+        if e.meas.kind != "cartesian":
+            options["conversion"] = e.string("conversion", "plain", choices=("plain", "unbiased"))
+        if gains == "explicit":
+            for g in names:
+                params[g] = _gain(e, g)
+        elif explicit:
+            raise e.error("gains", gains, 'explicit alpha/beta/gamma need gains = "explicit" (or no gains field)')
+        floor = e.get("floor") if gains == "growing_memory" else None
+        if gains == "growing_memory" and floor is not None:
+            if floor == "kalata":
+                options["floor"] = "kalata"
+            elif isinstance(floor, list) and len(floor) == order and all(
+                not isinstance(v, bool) and isinstance(v, (int, float)) and 0 <= v < 4 for v in floor
+            ):
+                options["floor"] = "explicit"
+                params["floor"] = tuple(float(v) for v in floor)
+            else:
+                raise e.error("floor", floor, f'must be "kalata" or {order} gains [{", ".join(names)}] in [0, 4)')
+        options["gains"] = gains
+        if gains == "kalata" or options.get("floor") == "kalata":
+            lam = e.sigmas("tracking_index", e.dim, required=False)
+            if lam is None:
+                sw = e.get("sigma_w")
+                if sw is None and e.meas.kind != "cartesian":
+                    raise e.error("sigma_w", None, "is required (position-noise std per axis, m) for Kalata gains behind "
+                                  "a non-Cartesian sensor, unless tracking_index is given")
+                sigma_w = e.sigmas("sigma_w", e.dim) if sw is not None else tuple(np.sqrt(params["r"]))
+                T = getattr(e.meas, "period", 0.0) or e.dt  # the update interval
+                lam = tuple(tracking_index(math.sqrt(params["q"]), w, T) for w in sigma_w)
+            elif e.has("sigma_w"):
+                raise e.error("sigma_w", e.get("sigma_w"), "give either tracking_index or sigma_w, not both")
+            params["lam"] = lam
+        return model, params, options
+
+    return read
+
+
+def _write_gain(table, name, value, where):
+    """Explicit gains replace Kalata's and the growing-memory schedule."""
+    write_value(table, name, value, where)
+    table["gains"] = "explicit"
+    for k in ("tracking_index", "sigma_w", "floor"):
+        table.pop(k, None)
+
+
+def _write_tracking_index(table, name, value, where):
+    table["tracking_index"] = list(np.atleast_1d(value).tolist())
+    table.pop("sigma_w", None)
+
+
+_FLOOR = Constraint("[0, 4)", lambda v: (v >= 0) & (v < 4))
+
+
+def _params(order):
+    gain = {"alpha": "position gain α", "beta": "velocity gain β", "gamma": "acceleration gain γ"}
+    return {
+        **NOISE,
+        **{g: Param(gain[g] + " (gains = explicit; jointly stable)", stable_gains, tune=True, sweep=True, write=_write_gain)
+           for g in GAIN_NAMES[:order]},
+        "lam": Param("Kalata's tracking index λ per axis (eq. 5), field tracking_index; default σ_v T²/σ_w", positive,
+                     tune=True, sweep=True, write=_write_tracking_index),
+        "floor": Param("growing-memory gain floor [α, β(, γ)] (floor = [...])", _FLOOR),
+    }
+
+
+_build = lambda model, sensor, params, options: model_alpha_beta(  # noqa: E731
+    model, sensor, params, options.get("gains", "kalata"), options.get("floor"), options.get("conversion", "plain"))
+_ACCEPTS = ("cartesian", "mount", "polar", "spherical")
+
+ALPHA_BETA = FilterKind(
+    name="alpha_beta", doc="α-β filter; gains = kalata | growing_memory | explicit alpha, beta", accepts=_ACCEPTS,
+    params=_params(2), read=_reader(2), build=_build)
+ALPHA_BETA_GAMMA = FilterKind(
+    name="alpha_beta_gamma", doc="α-β-γ filter; gains = kalata | growing_memory | explicit", accepts=_ACCEPTS,
+    params=_params(3), read=_reader(3), build=_build)

@@ -29,7 +29,9 @@ classical dual EKF of Wan & Nelson):
 A step with no measurement predicts the state and inflates P_w only. Parameters
 {q (state noise: variance of the acceleration increment, the CA model's DWPA),
 r, forget (λ), r_e, w0 (initial weights), pw0 (initial weight variance)} are a pytree: λ
-and the initial weights can be trained by gradient through whole Monte-Carlo runs.
+and the initial weights can be trained by gradient through whole Monte-Carlo runs. An
+experiment filter (kind ``dekf``) also carries the network's scaling s there (``scale``),
+an input of the compiled program like every number of its file.
 """
 
 from __future__ import annotations
@@ -41,6 +43,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab.filters.core import Filter, Out, masked_kalman_update, masked_meas, symmetrise
+from tracklab.filters.kind import (MEASUREMENT_NOISE, PROCESS_NOISE, Entry, FilterKind, Param, free, noise, positive,
+                                   unit_interval)
 from tracklab.linalg import mm
 
 
@@ -109,7 +113,8 @@ class DekfState(NamedTuple):
 
 
 def dual_ekf(net: Network, params) -> Filter:
-    """The dual EKF on one angle channel; the measurement is θ (m = 1)."""
+    """The dual EKF on one angle channel; the measurement is θ (m = 1). With ``scale`` in the
+    parameters, the network's scaling is that parameter (otherwise ``net.scale``)."""
     C = jnp.array([[1.0, 0.0, 0.0]])
     G = jnp.array([net.dt**2 / 2, net.dt, 1.0])  # DWPA gain of the state noise
 
@@ -120,17 +125,18 @@ def dual_ekf(net: Network, params) -> Filter:
                          p["pw0"] * jnp.eye(nw, dtype=x.dtype))
 
     def step(p, s, meas):
+        net_p = net._replace(scale=p["scale"]) if "scale" in p else net
         z, present = masked_meas(meas)
         Pw_pred = s.Pw / p["forget"]  # forgetting
-        x_pred = net(s.x, s.w)
-        A = jax.jacfwd(net, argnums=0)(s.x, s.w)
+        x_pred = net_p(s.x, s.w)
+        A = jax.jacfwd(net_p, argnums=0)(s.x, s.w)
         Q = p["q"] * jnp.outer(G, G)
         P_pred = symmetrise(mm(mm(A, s.P), A.T) + Q)
         nu = z - mm(C, x_pred)
         R = jnp.reshape(p["r"], (1, 1))
         x, P, nu_used, S = masked_kalman_update(x_pred, P_pred, nu, C, R, present)
         # weight filter, on the same innovation (eqs. 13-15)
-        Cw = mm(C, jax.jacfwd(net, argnums=1)(s.x, s.w))  # (1, n_w)
+        Cw = mm(C, jax.jacfwd(net_p, argnums=1)(s.x, s.w))  # (1, n_w)
         Re = jnp.reshape(p["r_e"], (1, 1))
         w, Pw, _, _ = masked_kalman_update(s.w, Pw_pred, nu, Cw, Re, present)
         out = Out(x=x, P=P, x_pred=x_pred, nu=nu_used, S=S, valid=jnp.any(present), dof=jnp.sum(present),
@@ -155,9 +161,50 @@ def predict_ahead(net: Network, x, w, n: int):
     return x
 
 
-def model_dekf(model, sensor, params, hidden=4, scale=(100.0, 50.0, 30.0), reading="residual") -> Filter:
-    """The dual EKF as an experiment filter: one angle channel, CA-layout state [θ, θ̇, θ̈]."""
+def model_dekf(model, sensor, params, hidden=4, reading="residual") -> Filter:
+    """The dual EKF as an experiment filter: one angle channel, CA-layout state [θ, θ̇, θ̈];
+    params {q, r, forget, r_e, w0, pw0, scale}."""
     if model.dim != 1 or model.order != 3 or sensor.m != 1:
         raise ValueError("dekf tracks one channel: a 1-D scenario, the ca model and a 1-D linear sensor")
-    net = Network(int(hidden), tuple(float(v) for v in scale), float(model.F[0, 1]), reading == "residual")
+    net = Network(int(hidden), params["scale"], float(model.F[0, 1]), reading == "residual")
     return dual_ekf(net, params)
+
+
+# ------------------------------------------------------------------------- declarations
+
+
+def _read(e: Entry):
+    """hidden, reading, scale, forget, weights_seed (-> w0), r_e, pw0; q (accel_increment_sigma) and r as every kind."""
+    if e.dim != 1 or e.meas.m != 1:
+        raise e.error("kind", "dekf", "dekf tracks one angle channel: a 1-D scenario and a 1-D cartesian sensor")
+    if e.get("model", "ca") != "ca":
+        raise e.error("model", e.get("model"), "dekf works on the ca state [theta, rate, acceleration]")
+    params = noise(e, "ca")
+    options = {"hidden": e.integer("hidden", 4, lo=1, hi=256),
+               "reading": e.string("reading", "residual", choices=("residual", "literal"))}
+    scale = e.sigmas("scale", 3, default=list(e.default("scale")))
+    forget = e.number("forget", e.default("forget"))
+    if not 0.0 < forget <= 1.0:
+        raise e.error("forget", forget, "the forgetting factor must be in (0, 1]")
+    seed = e.integer("weights_seed", 0, lo=0, hi=2**32 - 1)
+    net = Network(options["hidden"], scale, 1.0, options["reading"] == "residual")
+    p = dekf_params(net, q=params["q"], r=params["r"][0], lam=forget, r_e=e.number("r_e", e.default("r_e"), positive=True),
+                    pw0=e.number("pw0", e.default("pw0"), positive=True), key=jax.random.key(seed))
+    params.update({k: np.asarray(v).tolist() for k, v in p.items() if k not in ("q", "r")}, scale=scale)
+    return "ca", params, options
+
+
+DEKF = FilterKind(
+    name="dekf", doc="dual EKF with a neural motion model (paper 003); one angle channel, 1-D linear sensor",
+    accepts=("cartesian",),
+    params={"q": PROCESS_NOISE, "r": MEASUREMENT_NOISE,
+            "forget": Param("weight forgetting factor λ", unit_interval, default=0.999, tune=True),
+            "r_e": Param("weight filter's innovation variance Rᵉ", positive, "sensor units²", default=0.5, tune=True,
+                         sweep=True),
+            "pw0": Param("initial weight variance", positive, default=1e-4, tune=True),
+            "w0": Param("initial network weights; a file gives weights_seed", free, tune=True, write=None),
+            "scale": Param("network scaling: typical |θ|, |θ̇|, |θ̈|", positive, "angle, /s, /s²",
+                           default=(100.0, 50.0, 30.0))},
+    read=_read,
+    build=lambda model, sensor, params, options: model_dekf(
+        model, sensor, params, options.get("hidden", 4), options.get("reading", "residual")))

@@ -48,6 +48,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab.filters.core import Filter, Gaussian, Out, masked_kalman_update, symmetrise
+from tracklab.filters.kind import NOISE, Entry, FilterKind, Param, noise, positive
 from tracklab.linalg import mm
 
 
@@ -115,3 +116,40 @@ def model_error_space(model, m: int, params, guide: str = "previous", delay: int
         return ErrorSpaceState(Gaussian(lx, lP), E_post, queue), out
 
     return Filter(init=init, step=step, params=params)
+
+
+# ------------------------------------------------------------------------- declarations
+
+
+def _read(e: Entry):
+    """q_e, r_e; with a guide sensor r_guide and guide_delay; q and r as every kind."""
+    model = e.motion_model()
+    params = noise(e, model)
+    params["q_e"] = e.number("q_e", params["q"], positive=True)
+    params["r_e"] = e.sigmas("r_e", e.meas.m, required=False) or params["r"]
+    options = {}
+    if e.guide is not None:
+        r_g = e.sigmas("r_guide", e.meas.m, required=False)
+        params["r_guide"] = tuple(v**2 for v in e.guide.sigma) if r_g is None else r_g
+        options["guide_delay"] = e.integer("guide_delay", 0, lo=0, hi=10_000)
+    elif e.has("guide_delay"):
+        raise e.error("guide_delay", e.get("guide_delay"), "applies to an external guide sensor only")
+    return model, params, options
+
+
+def _build(model, sensor, params, options):
+    guide = options.get("guide", "previous")
+    m = sensor.m if guide == "previous" else sensor.m // 2
+    return model_error_space(model, m, params, "previous" if guide == "previous" else "external",
+                             options.get("guide_delay", 0))
+
+
+ERROR_SPACE = FilterKind(
+    name="error_space", doc="error-space estimator (paper 004): guide-data and guide-error KFs; guide = previous | a sensor",
+    accepts=("cartesian", "mount"), guided=True,
+    params={**NOISE,
+            "q_e": Param("guide-error process noise; default q", positive, "(m/s²)²", tune=True, sweep=True),
+            "r_e": Param("guide-error observation noise; default r", positive, "sensor units²", tune=True, sweep=True),
+            "r_guide": Param("guide sensor's observation noise; default its sigmas²", positive, "sensor units²",
+                             tune=True, sweep=True)},
+    read=_read, build=_build)

@@ -99,10 +99,10 @@ class LaserIrFusion:
     @property
     def model(self) -> Sensor:
         L, I = self._sensors()
-        s_az = np.sqrt(L.sigma[1] ** 2 * I.sigma[0] ** 2 / (L.sigma[1] ** 2 + I.sigma[0] ** 2))
-        s_el = np.sqrt(L.sigma[2] ** 2 * I.sigma[1] ** 2 / (L.sigma[2] ** 2 + I.sigma[1] ** 2))
-        return Sensor("spherical", 3, (L.sigma[0], float(s_az), float(s_el)), L.p_detect,
-                      name=f"{self.laser}+{self.infrared}", dt=L.dt, period=L.period, offset=L.offset)
+        s_az = (L.sigma[1] ** 2 * I.sigma[0] ** 2 / (L.sigma[1] ** 2 + I.sigma[0] ** 2)) ** 0.5
+        s_el = (L.sigma[2] ** 2 * I.sigma[1] ** 2 / (L.sigma[2] ** 2 + I.sigma[1] ** 2)) ** 0.5
+        return Sensor("spherical", 3, (L.sigma[0], s_az, s_el), L.p_detect, name=f"{self.laser}+{self.infrared}",
+                      dt=L.dt, period=L.period, offset=L.offset, misses=L.misses)
 
     def __call__(self, z):
         L, I = self._sensors()
@@ -113,3 +113,19 @@ class LaserIrFusion:
         az, _ = fuse_angles(zl[:, 1], L.sigma[1] ** 2, zi[:, 0], I.sigma[0] ** 2)
         el, _ = fuse_angles(zl[:, 2], L.sigma[2] ** 2, zi[:, 1], I.sigma[1] ** 2)
         return jnp.stack([zl[:, 0], az, el], axis=-1)
+
+
+def view_of(suite: SensorSuite, names, fusion=None):
+    """(view function or None, measurement model) of what a filter sees of a sensor suite: the
+    named sensors (all when ``names`` is empty), laser + infrared fused when ``fusion`` is given."""
+    names = tuple(names) or tuple(s.name for s in suite.sensors)
+    if fusion is not None:
+        sub = suite.subset(names)
+        laser = next(s.name for s in sub.sensors if s.kind == "spherical")
+        ir = next(s.name for s in sub.sensors if s.kind == "angles")
+        v = LaserIrFusion(suite, laser, ir, fusion)
+        return v, v.model
+    if names == tuple(s.name for s in suite.sensors):
+        return None, suite.sensors[0] if len(suite.sensors) == 1 else suite
+    v = Select(suite, names)
+    return v, v.model

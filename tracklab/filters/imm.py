@@ -21,7 +21,8 @@ transition and of the sensor by ``jax.jacfwd``), so any sensor works. One cycle:
 3. μ_j ∝ c_j Λ_j; the output is the moment-matched mixture.
 
 The mode probabilities are in ``Out.aux["mode_probabilities"]`` (``run_filter``'s
-``.aux``). Parameters {q (one per model), q_turn, r, transition, mu0}.
+``.aux``). Parameters {q (one per model), q_turn, r, transition, mu0, turn_rate_sigma
+(the prior's turn-rate std)}.
 """
 
 from __future__ import annotations
@@ -33,7 +34,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab.filters.core import Filter, Out, masked_kalman_update, masked_meas, symmetrise, wrap_components
+from tracklab.filters.kind import (ANY_SENSOR, MEASUREMENT_NOISE, Entry, FilterKind, Param, positive, probabilities)
 from tracklab.linalg import jacobian, mahalanobis2_logdet, mm
+from tracklab.toml_fields import MAX_MAGNITUDE
 
 IMM_MODELS = ("cv", "ca", "ct")
 
@@ -87,7 +90,7 @@ def noise_gain(kind: str, dim: int, T: float) -> np.ndarray:
     return G
 
 
-def model_imm(dim: int, dt: float, sensor, params, kinds=("cv", "ca", "ct"), turn_rate_sigma=0.1) -> Filter:
+def model_imm(dim: int, dt: float, sensor, params, kinds=("cv", "ca", "ct")) -> Filter:
     """IMM over ``kinds`` for a sensor observing the ``dim`` position components."""
     if "ct" in kinds and dim < 2:
         raise ValueError("the coordinated-turn model needs at least 2 dimensions")
@@ -102,7 +105,7 @@ def model_imm(dim: int, dt: float, sensor, params, kinds=("cv", "ca", "ct"), tur
 
     def init(p, prior):
         x = jnp.concatenate([jnp.asarray(prior.x), jnp.zeros((1,), prior.x.dtype)])
-        P = jnp.zeros((n, n), prior.x.dtype).at[:-1, :-1].set(prior.P).at[-1, -1].set(turn_rate_sigma**2)
+        P = jnp.zeros((n, n), prior.x.dtype).at[:-1, :-1].set(prior.P).at[-1, -1].set(p["turn_rate_sigma"] ** 2)
         r = len(kinds)
         return ImmState(jnp.broadcast_to(x, (r, n)), jnp.broadcast_to(P, (r, n, n)), jnp.asarray(p["mu0"], x.dtype))
 
@@ -144,12 +147,71 @@ def model_imm(dim: int, dt: float, sensor, params, kinds=("cv", "ca", "ct"), tur
     return Filter(init=init, step=step, params=params)
 
 
-def imm_params(kinds, q, q_turn, r, p_stay=0.95, transition_matrix=None, mu0=None):
-    """Parameter pytree: per-model q, q_turn, r, the Markov transition matrix and initial probabilities."""
+def imm_params(kinds, q, q_turn, r, p_stay=0.95, transition_matrix=None, mu0=None, turn_rate_sigma=0.1):
+    """Parameter pytree: per-model q, q_turn, r, the Markov transition matrix, initial probabilities and
+    the prior's turn-rate std."""
     k = len(kinds)
     if transition_matrix is None:
         off = (1.0 - p_stay) / (k - 1) if k > 1 else 0.0
         transition_matrix = np.full((k, k), off) + np.eye(k) * (p_stay - off if k > 1 else 1.0)
     mu0 = np.full(k, 1.0 / k) if mu0 is None else np.asarray(mu0, float)
     return {"q": jnp.asarray(q, float), "q_turn": jnp.asarray(q_turn, float), "r": jnp.asarray(r, float),
-            "transition": jnp.asarray(transition_matrix, float), "mu0": jnp.asarray(mu0, float)}
+            "transition": jnp.asarray(transition_matrix, float), "mu0": jnp.asarray(mu0, float),
+            "turn_rate_sigma": jnp.asarray(turn_rate_sigma, float)}
+
+
+# ------------------------------------------------------------------------- declarations
+
+
+def _read(e: Entry):
+    """models, q (one per model), q_turn, turn_rate_sigma, p_stay or transition; r as every kind."""
+    if e.has("model"):
+        raise e.error("model", e.get("model"), 'imm has its own models: use models = ["cv", "ca", "ct"]')
+    r = e.measurement_noise()
+    models = e.get("models", list(IMM_MODELS) if e.dim >= 2 else ["cv", "ca"])
+    if not isinstance(models, list) or not models or any(m not in IMM_MODELS for m in models) or len(set(models)) != len(models):
+        raise e.error("models", models, f"must be a list of distinct models from: {', '.join(IMM_MODELS)}")
+    if "ct" in models and e.dim < 2:
+        raise e.error("models", models, "the coordinated turn (ct) needs a 2-D or 3-D scenario")
+    cv_q = e.accel_sigma**2 if e.accel_sigma > 0 else 1.0
+    q = e.get("q", [cv_q if m != "ca" else 0.1 * cv_q for m in models])
+    if (not isinstance(q, list) or len(q) != len(models)
+            or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= MAX_MAGNITUDE for v in q)):
+        raise e.error("q", q, f"must be {len(models)} process-noise variances > 0, one per model")
+    q_turn = e.number("q_turn", e.default("q_turn"), positive=True)
+    turn_sigma = e.number("turn_rate_sigma", e.default("turn_rate_sigma"), positive=True)
+    k = len(models)
+    if e.has("transition"):
+        if e.has("p_stay"):
+            raise e.error("p_stay", e.get("p_stay"), "give either p_stay or transition, not both")
+        tm = e.get("transition")
+        ok = isinstance(tm, list) and len(tm) == k and all(
+            isinstance(row, list) and len(row) == k
+            and all(not isinstance(v, bool) and isinstance(v, (int, float)) and 0 <= v <= 1 for v in row)
+            and abs(sum(row) - 1.0) < 1e-9 for row in tm)
+        if not ok:
+            raise e.error("transition", tm, f"must be a {k}x{k} matrix of probabilities whose rows sum to 1")
+        matrix = np.array(tm, float)
+    else:
+        p_stay = e.number("p_stay", 0.95)
+        if not 0.0 < p_stay <= 1.0 or (k > 1 and p_stay == 1.0):
+            raise e.error("p_stay", p_stay, "must be a probability in (0, 1) (1 with one model)")
+        matrix = None
+    params = imm_params(models, q, q_turn, r, p_stay=p_stay if matrix is None else 0.95, transition_matrix=matrix,
+                        turn_rate_sigma=turn_sigma)
+    return "ca", {n: np.asarray(v).tolist() for n, v in params.items()}, {"models": tuple(models)}
+
+
+IMM = FilterKind(
+    name="imm", doc="interacting multiple models over cv / ca / ct (coordinated turn); mode probabilities in aux",
+    accepts=ANY_SENSOR,
+    params={"q": Param("process-noise variance per model; default the scenario's (ca: a tenth)", positive, "(m/s²)²",
+                       tune=True, sweep=True),
+            "r": MEASUREMENT_NOISE,
+            "q_turn": Param("turn-rate random-walk variance per step", positive, "(rad/s)²", default=1e-4),
+            "transition": Param("Markov transition matrix (from p_stay = 0.95, or transition = [[...]])", probabilities),
+            "mu0": Param("initial mode probabilities (equal)", probabilities),
+            "turn_rate_sigma": Param("prior turn-rate std", positive, "rad/s", default=0.1)},
+    read=_read,
+    build=lambda model, sensor, params, options: model_imm(
+        model.dim, float(model.F[0, 1]), sensor, params, tuple(options.get("models", IMM_MODELS))))

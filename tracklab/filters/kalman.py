@@ -9,6 +9,8 @@
 Filters built for experiments (``model_*``) take parameters
 ``{"q": process-noise variance, "r": measurement-noise variances (m,)}``, so
 noise levels can be swept and tuned; the public constructors take matrices.
+The kinds an experiment file names (``KF``, ``EKF``, ``CMKF``, ``SEQUENTIAL_EKF``)
+are declared at the end.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from tracklab.filters.core import (
     symmetrise,
     wrap_components,
 )
+from tracklab.filters.kind import ANY_SENSOR, NOISE, Entry, FilterKind, noise, read_noise
 from tracklab.linalg import jacobian, mm
 from tracklab.sensors import CONVERSIONS
 
@@ -202,3 +205,37 @@ def model_sequential_ekf(model, sensor, params) -> Filter:
         return Gaussian(x, P), jnp.stack(nus), jnp.diag(jnp.stack(Ss)), present
 
     return gaussian_filter(params, _model_predict(model), update)
+
+
+# ------------------------------------------------------------------------- declarations
+
+
+def _read_kf(e: Entry):
+    if not e.meas.linear:
+        raise e.error("kind", "kf", "needs linear sensors only (cartesian or mount): use ekf, ukf or stf")
+    return read_noise(e)
+
+
+def _read_cmkf(e: Entry):
+    model = e.motion_model()
+    debias = e.string("debias", "plain", choices=tuple(CONVERSIONS))
+    if debias == "additive" and e.meas.kind != "polar":
+        raise e.error("debias", debias, "the additive (Lerro) conversion is 2-D: use plain or unbiased with a spherical sensor")
+    return model, noise(e, model), {"debias": debias}
+
+
+KF = FilterKind(
+    name="kf", doc="linear Kalman filter (needs a linear 'cartesian' or 'mount' sensor)",
+    accepts=("cartesian", "mount", "suite"), params=NOISE, read=_read_kf,
+    build=lambda model, sensor, params, options: model_kf(model, sensor, params))
+EKF = FilterKind(
+    name="ekf", doc="extended Kalman filter, Jacobians by autodiff", accepts=ANY_SENSOR, params=NOISE,
+    read=read_noise, build=lambda model, sensor, params, options: model_ekf(model, sensor, params))
+CMKF = FilterKind(
+    name="cmkf", doc="converted-measurement KF; debias = plain | additive | unbiased", accepts=("polar", "spherical"),
+    params=NOISE, read=_read_cmkf,
+    build=lambda model, sensor, params, options: model_cmkf(model, sensor, params, options.get("debias", "plain")))
+SEQUENTIAL_EKF = FilterKind(
+    name="sequential_ekf", doc="sequential EKF: angles first, re-linearise, then range",
+    accepts=("polar", "spherical", "angles", "suite"), params=NOISE, read=read_noise,
+    build=lambda model, sensor, params, options: model_sequential_ekf(model, sensor, params))

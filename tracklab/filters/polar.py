@@ -14,6 +14,7 @@ import jax.numpy as jnp
 
 from tracklab.filters.core import Gaussian, Prior, masked_kalman_update, symmetrise, wrap_angle
 from tracklab.filters.kalman import gaussian_filter
+from tracklab.filters.kind import NOISE, Entry, FilterKind, noise
 from tracklab.linalg import jacobian, mm
 
 
@@ -61,3 +62,15 @@ def model_polar_kf(dt, sensor, params):
         return polar_to_cartesian(g.x), symmetrise(mm(mm(J, g.P), J.T))
 
     return gaussian_filter(params, predict, update, report=report, init=init)
+
+
+def _read(e: Entry):
+    model = e.motion_model()
+    if model != "cv":
+        raise e.error("model", model, 'polar_kf has its own polar CV state: use model = "cv"')
+    return model, noise(e, model), {}
+
+
+POLAR_KF = FilterKind(
+    name="polar_kf", doc="polar-state KF [r, ṙ, β, β̇], two decoupled channels (2-D)", accepts=("polar",),
+    params=NOISE, read=_read, build=lambda model, sensor, params, options: model_polar_kf(model.F[0, 1], sensor, params))

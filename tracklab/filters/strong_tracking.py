@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 
 from tracklab.filters.core import Filter, Out, masked_kalman_update, masked_meas, symmetrise, wrap_components
+from tracklab.filters.kind import ANY_SENSOR, NOISE, Entry, FilterKind, Param, noise, positive, unit_interval
 from tracklab.linalg import jacobian, mm
 
 
@@ -100,3 +101,23 @@ def model_stf(model, sensor, params) -> Filter:
         return sensor.h(jnp.stack([x[i] for i in pos]))
 
     return _stf(lambda x: mm(F, x), h, lambda p: model.Q(p["q"]), lambda p: jnp.diag(p["r"]), sensor.angle_mask, params)
+
+
+def _read(e: Entry):
+    model = e.motion_model()
+    params = noise(e, model)
+    params["rho"] = e.number("rho", e.default("rho"))
+    if not 0.0 < params["rho"] <= 1.0:
+        raise e.error("rho", params["rho"], "the forgetting factor must be in (0, 1]")
+    params["b"] = e.number("b", e.default("b"), positive=True)
+    return model, params, {}
+
+
+STF = FilterKind(
+    name="stf", doc="strong tracking filter (Zhou): fading factor, forgetting rho, weakening b; extended on nonlinear sensors",
+    accepts=ANY_SENSOR,
+    params={**NOISE,
+            "rho": Param("forgetting factor ρ of the residual's running mean", unit_interval, default=0.95, tune=True,
+                         sweep=True),
+            "b": Param("weakening factor (larger: gentler fading)", positive, default=1.0, tune=True, sweep=True)},
+    read=_read, build=lambda model, sensor, params, options: model_stf(model, sensor, params))

@@ -20,14 +20,18 @@ import numpy as np
 from tracklab import random
 from tracklab.linalg import mm
 from tracklab.models import cv
+from tracklab.pytree import static
 
 
+@jax.tree_util.register_dataclass
 @dataclass(frozen=True)
 class ConstantVelocity:
-    dt: float
-    steps: int
-    initial: tuple[float, ...]  # CV layout, 2·dim values
+    dt: float = static()
+    steps: int = static()
+    initial: tuple = ()  # CV layout, 2·dim values
     accel_sigma: float = 0.0
+
+    gaussian = True  # a linear-Gaussian motion model: the PCRLB applies
 
     @property
     def dim(self) -> int:
@@ -37,8 +41,8 @@ class ConstantVelocity:
     def model(self):
         return cv(self.dim, self.dt)
 
-    def initial_state(self) -> np.ndarray:
-        return np.asarray(self.initial, float)
+    def initial_state(self):
+        return jnp.stack([jnp.asarray(v) for v in self.initial])
 
     def linear_gaussian(self):
         """(F, Q) of the truth's dynamics, for the PCRLB."""

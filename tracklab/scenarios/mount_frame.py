@@ -26,6 +26,7 @@ def mount_angles(p):
     return jnp.stack([jnp.arctan2(x, y), jnp.arctan2(z, jnp.hypot(x, y))])
 
 
+@jax.tree_util.register_dataclass
 @dataclass(frozen=True)
 class MountFrame:
     scenario: Any  # a 3-D scenario: simulate(key) -> (steps + 1, 6) in CV layout
@@ -33,6 +34,7 @@ class MountFrame:
     dim = 2
     axes = ("az", "el")
     units = ("deg", "deg/s")
+    gaussian = False
 
     @property
     def per_run(self):

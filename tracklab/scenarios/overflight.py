@@ -14,14 +14,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import jax
 import jax.numpy as jnp
-import numpy as np
+
+from tracklab.pytree import static
 
 
+@jax.tree_util.register_dataclass
 @dataclass(frozen=True)
 class Overflight:
-    dt: float
-    steps: int
+    dt: float = static()
+    steps: int = static()
     altitude: float = 8000.0
     speed: float = 250.0
     max_elevation: float = 74.947  # degrees
@@ -30,21 +33,21 @@ class Overflight:
 
     dim = 3
     per_run = False  # the same truth in every run
+    gaussian = False
 
-    def truth(self) -> np.ndarray:
-        h = np.radians(self.heading)
-        u = np.array([np.sin(h), np.cos(h)])  # direction of flight (east, north)
-        d = self.altitude / np.tan(np.radians(self.max_elevation))
-        c = d * np.array([-u[1], u[0]])  # closest point of the ground track, left of the track
-        t = self.dt * np.arange(self.steps + 1) - self.t_closest
+    def truth(self):
+        h = jnp.radians(self.heading)
+        u = jnp.stack([jnp.sin(h), jnp.cos(h)])  # direction of flight (east, north)
+        d = self.altitude / jnp.tan(jnp.radians(self.max_elevation))
+        c = d * jnp.stack([-u[1], u[0]])  # closest point of the ground track, left of the track
+        t = self.dt * jnp.arange(self.steps + 1) - self.t_closest
         xy = c[None, :] + self.speed * t[:, None] * u[None, :]
-        out = np.zeros((len(t), 6))
-        out[:, 0], out[:, 2], out[:, 4] = xy[:, 0], xy[:, 1], self.altitude
-        out[:, 1], out[:, 3] = self.speed * u[0], self.speed * u[1]
-        return out
+        one = jnp.ones_like(t)
+        return jnp.stack([xy[:, 0], self.speed * u[0] * one, xy[:, 1], self.speed * u[1] * one, self.altitude * one,
+                          0.0 * one], axis=-1)
 
     def linear_gaussian(self):
         return None
 
     def simulate(self, key):
-        return jnp.asarray(self.truth())
+        return self.truth()

@@ -8,30 +8,34 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import jax
 import jax.numpy as jnp
-import numpy as np
+
+from tracklab.pytree import static
 
 
+@jax.tree_util.register_dataclass
 @dataclass(frozen=True)
 class Sine:
-    dt: float
-    steps: int
+    dt: float = static()
+    steps: int = static()
     amplitude: float = 83.33
     omega: float = 0.6
     phase: float = 0.0  # rad
 
     dim = 1
     per_run = False  # the same truth in every run
+    gaussian = False
     axes = ("angle",)
     units = ("deg", "deg/s")
 
-    def truth(self) -> np.ndarray:
-        t = self.dt * np.arange(self.steps + 1)
+    def truth(self):
+        t = self.dt * jnp.arange(self.steps + 1)
         arg = self.omega * t + self.phase
-        return np.stack([self.amplitude * np.sin(arg), self.amplitude * self.omega * np.cos(arg)], -1)
+        return jnp.stack([self.amplitude * jnp.sin(arg), self.amplitude * self.omega * jnp.cos(arg)], -1)
 
     def linear_gaussian(self):
         return None
 
     def simulate(self, key):
-        return jnp.asarray(self.truth())
+        return self.truth()

@@ -20,8 +20,13 @@ import functools
 from dataclasses import dataclass
 from pathlib import Path
 
+from typing import Any
+
+import jax
 import jax.numpy as jnp
 import numpy as np
+
+from tracklab.pytree import static
 
 COLUMNS = ("t", "x", "y", "z")
 
@@ -79,8 +84,8 @@ def hermite(t_knots, p_knots, t):
 
     Knot velocities are the central differences of the knots (one-sided at the ends).
     """
-    m = np.gradient(p_knots, t_knots, axis=0)
-    i = np.clip(np.searchsorted(t_knots, t, side="right") - 1, 0, len(t_knots) - 2)
+    m = jnp.gradient(p_knots, t_knots, axis=0)
+    i = jnp.clip(jnp.searchsorted(t_knots, t, side="right") - 1, 0, len(t_knots) - 2)
     h = (t_knots[i + 1] - t_knots[i])[:, None]
     s = (t - t_knots[i])[:, None] / h
     p0, p1, m0, m1 = p_knots[i], p_knots[i + 1], m[i] * h, m[i + 1] * h
@@ -89,17 +94,24 @@ def hermite(t_knots, p_knots, t):
     return pos, vel
 
 
+@jax.tree_util.register_dataclass
 @dataclass(frozen=True)
 class Trajectory:
-    path: str
-    dt: float
-    steps: int
-    dim: int = 3
+    path: str = static()
+    dt: float = static()
+    steps: int = static()
+    dim: int = static(3)
     per_run = False  # the same truth in every run
+    gaussian = False
     start: float = 0.0  # seconds after the file's first time
+    knots: Any = None  # the file's (rows, 4) table t, x, y, z; None: read from ``path``
+
+    def __post_init__(self):
+        if self.knots is None:
+            object.__setattr__(self, "knots", read_csv(self.path))
 
     def table(self) -> np.ndarray:
-        return read_csv(self.path)
+        return np.asarray(self.knots)
 
     def duration(self) -> float:
         d = self.table()
@@ -111,13 +123,11 @@ class Trajectory:
     def linear_gaussian(self):
         return None  # deterministic truth: no bound from a Gaussian motion model
 
-    def truth(self) -> np.ndarray:
-        d = self.table()
-        t = d[0, 0] + self.start + self.dt * np.arange(self.steps + 1)
+    def truth(self):
+        d = jnp.asarray(self.knots)
+        t = d[0, 0] + self.start + self.dt * jnp.arange(self.steps + 1)
         pos, vel = hermite(d[:, 0], d[:, 1:1 + self.dim], t)
-        out = np.empty((len(t), 2 * self.dim))
-        out[:, 0::2], out[:, 1::2] = pos, vel
-        return out
+        return jnp.stack([pos, vel], axis=-1).reshape(len(t), 2 * self.dim)
 
     def simulate(self, key):
-        return jnp.asarray(self.truth())
+        return self.truth()

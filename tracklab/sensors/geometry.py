@@ -32,6 +32,7 @@ import numpy as np
 
 from tracklab import random
 from tracklab.linalg import jacobian
+from tracklab.pytree import static
 
 
 def polar_h(p):
@@ -80,16 +81,26 @@ def epochs(steps: int, dt: float, period: float, offset: float) -> np.ndarray:
     return (t >= offset - 1e-9 * dt) & (np.abs(j - np.round(j)) < 1e-6)
 
 
+@jax.tree_util.register_dataclass
 @dataclass(frozen=True)
 class Sensor:
-    kind: str  # "polar" | "spherical" | "angles" | "cartesian"
-    dim: int  # spatial dimension of the positions it observes
-    sigma: tuple[float, ...]  # true noise std per measurement component
+    """A sensor: its numbers (``sigma``, ``p_detect``) are the leaves of a pytree, so they
+    enter a compiled program as arguments; kind, timing and whether it can miss a
+    detection are its structure."""
+
+    kind: str = static()  # "polar" | "spherical" | "angles" | "cartesian" | "mount"
+    dim: int = static()  # spatial dimension of the positions it observes
+    sigma: tuple = ()  # true noise std per measurement component
     p_detect: float = 1.0
-    name: str = ""
-    dt: float = 0.0  # the experiment's step; with period/offset, sets the report epochs
-    period: float = 0.0  # 0: every step
-    offset: float = 0.0
+    name: str = static("")
+    dt: float = static(0.0)  # the experiment's step; with period/offset, sets the report epochs
+    period: float = static(0.0)  # 0: every step
+    offset: float = static(0.0)
+    misses: bool | None = static(None)  # draws detections (p_detect < 1); None: from p_detect
+
+    def __post_init__(self):
+        if self.misses is None:
+            object.__setattr__(self, "misses", bool(self.p_detect < 1.0))
 
     @property
     def m(self) -> int:
@@ -124,7 +135,7 @@ class Sensor:
         """One run's draws, float32: standard-normal noise (steps, m) and, when the sensor can
         miss, uniforms (steps,) that decide its detections."""
         k_noise, k_det = jax.random.split(key)
-        u = random.uniform(k_det, (steps,)) if self.p_detect < 1.0 else None  # float32
+        u = random.uniform(k_det, (steps,)) if self.misses else None  # float32
         return random.normal(k_noise, (steps, self.m)), u
 
     def measure_step(self, draws_k, k, steps, p):
@@ -145,9 +156,10 @@ class Sensor:
     def information(self, p):
         """Expected Fisher information of one report about the position: Pd·Hᵀ R⁻¹ H."""
         H = jacobian(self.h, p)
-        return self.p_detect * (H.T / jnp.asarray(np.square(self.sigma), p.dtype)) @ H
+        return self.p_detect * (H.T / jnp.square(jnp.asarray(self.sigma, p.dtype))) @ H
 
 
+@jax.tree_util.register_dataclass
 @dataclass(frozen=True)
 class SensorSuite:
     """Several sensors observing the same truth; z is their concatenation."""
@@ -179,8 +191,8 @@ class SensorSuite:
         return sum((s.angle_mask for s in self.sensors), ())
 
     @property
-    def p_detect(self) -> float:
-        return min(s.p_detect for s in self.sensors)
+    def misses(self) -> bool:
+        return any(s.misses for s in self.sensors)
 
     @property
     def linear(self) -> bool:

@@ -43,22 +43,20 @@ run, averaged over runs) and the estimator's largest rate error (°/s).
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 
 from tracklab.errors import ConfigError
 
 ESTIMATOR_KINDS = ("kf", "dekf")
-CHUNK = 50  # runs per compiled batch
 MAX_TICKS = 10**7  # servo ticks per run (frames × frame_ticks)
 # the correctors are the paper's continuous designs (poles up to 400 rad/s), discretised at
 # the tick: the tick is kept near the paper's 1 ms
 TICK_RANGE = (1e-4, 2e-3)  # s
 CAMERA_LOOPS = ("double_loop", "velocity_lag")  # modes whose position loop is closed through the camera
-LOST = 180.0  # deg: a run whose tracking error passes half a turn has lost the target (diverged)
 
 
 @dataclass(frozen=True)
@@ -104,6 +102,7 @@ class ServoExperiment:
     also_runs: tuple[int, ...] = ()
     studies: list = field(default_factory=list)
     precision: str = "float64"
+    chunk: int | None = None  # runs per chunk; None: default_chunk()
 
     @property
     def steps(self) -> int:
@@ -114,30 +113,38 @@ class ServoExperiment:
         return (1, self.frames)
 
     def target_fn(self):
-        from tracklab.servo.loops import sine_target
+        from tracklab.servo.world import target_function
 
-        t = self.target
-        if t["kind"] == "sine":
-            return sine_target(t["amplitude"], t["omega"])
-        return cone_target(t["half_angle"], t["axis_elevation"], t["period"])
+        return target_function(self.target["kind"], {k: v for k, v in self.target.items() if k != "kind"})
 
     def target_omega(self) -> float:
         t = self.target
         return t["omega"] if t["kind"] == "sine" else 2 * math.pi / t["period"]
 
-    def build_estimator(self, cfg: EstimatorConfig):
+    def network(self, cfg: EstimatorConfig):
+        from tracklab.filters.dual_ekf import Network
+
+        return Network(cfg.hidden, self.target_scale(), self.frame_dt, cfg.reading == "residual")
+
+    def estimator_params(self, cfg: EstimatorConfig):
+        """An estimator's parameters (the DEKF's initial weights drawn from its seed)."""
         import jax
 
-        from tracklab.filters.dual_ekf import Network, dekf_params
-        from tracklab.servo.loops import dekf_estimator, kalman_estimator
+        from tracklab.filters import noise_params
+        from tracklab.filters.dual_ekf import dekf_params
 
         sigma = max(self.noise, 1e-3) / 3600.0
         if cfg.kind == "kf":
-            return kalman_estimator(self.frame_dt, sigma, cfg.q)
-        scale = self.target_scale()
-        net = Network(cfg.hidden, scale, self.frame_dt, cfg.reading == "residual")
-        p = dekf_params(net, q=cfg.q, r=sigma**2, lam=cfg.lam, r_e=cfg.r_e, pw0=cfg.pw0, key=jax.random.key(cfg.seed))
-        return dekf_estimator(net, p)
+            return noise_params(cfg.q, np.array([sigma**2]))
+        return dekf_params(self.network(cfg), q=cfg.q, r=sigma**2, lam=cfg.lam, r_e=cfg.r_e, pw0=cfg.pw0,
+                           key=jax.random.key(cfg.seed))
+
+    def build_estimator(self, cfg: EstimatorConfig):
+        from tracklab.servo.loops import dekf_estimator, kalman_estimator
+
+        if cfg.kind == "kf":
+            return kalman_estimator(self.frame_dt, max(self.noise, 1e-3) / 3600.0, cfg.q)
+        return dekf_estimator(self.network(cfg), self.estimator_params(cfg))
 
     def target_scale(self):
         """Typical |θ|, |θ̇|, |θ̈| of the target (the network's input scaling)."""
@@ -149,26 +156,36 @@ class ServoExperiment:
         vals = np.abs(np.asarray(jax.vmap(f)(t)))
         return tuple(float(max(v, 1e-6)) for v in vals.max(axis=0))
 
+    def prior_var(self):
+        """The estimators' prior variances of θ, θ̇, θ̈ (about the target's true start)."""
+        return np.array([(self.noise / 3600.0) ** 2 * 4, 1.0, 1.0])
+
     def prior(self):
         import jax.numpy as jnp
 
         from tracklab.filters.core import Prior
 
         x0 = jnp.asarray(np.asarray(self.target_fn()(0.0)))
-        return Prior(x0, jnp.diag(jnp.array([(self.noise / 3600.0) ** 2 * 4, 1.0, 1.0])))
+        return Prior(x0, jnp.diag(jnp.asarray(self.prior_var())))
 
     @property
     def ticks(self) -> int:
         """Servo ticks per run."""
         return self.frames * self.frame_ticks
 
+    def default_chunk(self) -> int:
+        """Runs per chunk when the file does not say: 16 per device (each run is tens of thousands
+        of servo ticks); fixed by the structure, never by the run count."""
+        import jax
+
+        return 16 * jax.device_count()
+
     def memory_bytes(self, runs=None) -> float:
         """The arrays a run holds: a chunk's per-tick values (the tracking error, its part after
-        ``settle``, the harmonic fit and its residual, the error returned and its host copy),
-        the host's time base and the fit's basis and pseudo-inverse (7 values a tick), and per
-        run its key and three statistics (kept, then joined)."""
-        runs = runs or self.runs
-        return min(CHUNK, runs) * self.ticks * 6 * 8.0 + self.ticks * 15 * 8.0 + runs * 56.0
+        ``settle``, the harmonic fit and its residual), the fit's basis and pseudo-inverse and
+        the masks (16 values a tick), and run 0's series."""
+        chunk = self.chunk or self.default_chunk()
+        return chunk * self.ticks * 4 * 8.0 + self.ticks * 16 * 8.0
 
     def check_memory(self, runs=None, limit=None):
         from tracklab.memory import check
@@ -186,72 +203,131 @@ class ServoExperiment:
         self.check_memory(runs, max_memory)
         precision = precision or self.precision
         with jax.enable_x64(precision == "float64"):  # single precision: traced and run in float32
-            doc = self.simulate(runs or self.runs, self.seed if seed is None else seed, progress)
+            doc = self.simulate(runs or self.runs, self.seed if seed is None else seed, progress, precision)
         doc["precision"] = precision
         with atomic_folder(out, self.path) as tmp:
             write_servo_results(doc, tmp, figures)
         return doc
 
-    def simulate(self, runs, seed, progress=None):
-        import jax
-        import jax.numpy as jnp
+    def structure(self, chunk=None):
+        """What the compiled program depends on: the timing, the target's kind, the cases' modes and
+        estimator kinds (a DEKF's network), and the chunk size."""
+        from tracklab.servo.world import CaseSpec, ServoStructure
 
-        from tracklab.servo.loops import AzimuthAxis, track
+        by = {e.label: e for e in self.estimators}
+        cases = []
+        for c in self.cases:
+            e = by.get(c.estimator)
+            kind = e.kind if e is not None else c.estimator  # "perfect" or None
+            cases.append(CaseSpec(c.label, c.mode, kind, self.network(e) if kind == "dekf" else None))
+        return ServoStructure(tuple(cases), self.frames, self.frame_ticks, self.frame_dt, self.delay,
+                              self.target["kind"], int(chunk or self.chunk or self.default_chunk()))
 
-        axis = AzimuthAxis(dt=self.frame_dt / self.frame_ticks)
-        target = self.target_fn()
-        ests, training = {}, {}
-        for e in self.estimators:
-            ests[e.label] = self.build_estimator(e)
-            if e.kind == "dekf" and e.train_steps > 0:
-                ests[e.label], training[e.label] = self.train(e, ests[e.label], progress)
-        prior = self.prior()
-        T = axis.dt
-        n_ticks = self.frames * self.frame_ticks
-        t = T * np.arange(n_ticks)
-        late = t >= self.settle
+    def params(self, estimators: dict | None = None):
+        """Every number of the experiment, as the compiled program's argument (``estimators``:
+        label -> parameters replacing an estimator's own, e.g. trained ones)."""
+        from tracklab.servo.world import ServoParams
+
+        estimators = estimators or {}
+        own = {e.label: estimators.get(e.label) or self.estimator_params(e) for e in self.estimators}
+        t = (1.0 / self.frame_ticks) * self.frame_dt * np.arange(self.ticks)
+        late = (t >= self.settle).astype(float)
         w = self.target_omega()
-        basis = np.stack([np.ones_like(t)] + [f(k * w * t) for k in (1, 2, 3) for f in (np.sin, np.cos)], -1)[late]
-        pinv = np.linalg.pinv(basis)
-        frame_late = (self.frame_dt * np.arange(self.frames)) >= self.settle
-        keys = jax.random.split(jax.random.key(seed), runs)
+        basis = np.stack([np.ones_like(t)] + [f(k * w * t) for k in (1, 2, 3) for f in (np.sin, np.cos)], -1)
+        basis = basis * late[:, None]  # the fit over the ticks after settle
+        frame_late = ((self.frame_dt * np.arange(self.frames)) >= self.settle).astype(float)
+        return ServoParams({k: v for k, v in self.target.items() if k != "kind"}, self.noise / 3600.0, self.accel_ff,
+                           self.prior_var(), [own.get(c.estimator) for c in self.cases], late, frame_late, basis,
+                           np.linalg.pinv(basis))
+
+    sweep_metrics = (("max_track_err", "maximum tracking error (′)"), ("random_err", "random error (″)"))
+    units = ("deg", "deg/s")
+
+    def world(self, structure):
+        from tracklab.servo.world import world
+
+        return world(structure)
+
+    def scaled(self, params, factors: dict):
+        """``params`` with the estimators' q (and the KF's r) scaled."""
+        def scale(p):
+            if p is None:
+                return p
+            return {k: (v * factors[k] if k in factors else v) for k, v in p.items()}
+
+        return params._replace(estimators=[scale(p) for p in params.estimators])
+
+    def summarise(self, structure, params, sums, out) -> dict:
+        cases = {}
+        for case in structure.cases:
+            s = {k: v for k, v in sums[case.label].items() if not k.startswith("example")}
+            cases[case.label] = {"kind": case.mode, "label": case.label, "estimator": self._case(case.label).estimator,
+                                 "summary": case_summary(s, out.runs, case.estimator not in (None, "perfect"))}
+        return {"filters": cases}
+
+    # tuning (tracklab.tune): each estimator's q, against the case(s) it feeds
+    tune_names = ("q",)
+    tune_losses = {
+        # mean over the cases of the healthy runs' mean-square tracking error after settle (deg²)
+        "track_mse": lambda s: s["sum_track_ms"] / jnp.maximum(s["healthy"], 1.0),
+        # the same of the estimator's rate error ((deg/s)²): what it feeds forward
+        "rate_mse": lambda s: s["sum_rate_ms"] / jnp.maximum(s["healthy"], 1.0),
+    }
+
+    def tune_selection(self, names, labels=None) -> dict:
+        used = {c.estimator for c in self.cases}
+        return {e.label: tuple(names) for e in self.estimators
+                if e.label in used and e.train_steps == 0 and (not labels or e.label in labels)}
+
+    def tune_start(self, chosen) -> dict:
+        by = {e.label: e for e in self.estimators}
+        return {l: {n: float(getattr(by[l], n)) for n in names} for l, names in chosen.items()}
+
+    def with_tuned(self, params, values: dict):
+        """``params`` with the estimators' q from ``values`` ({label: {name: value}}), in every case they feed."""
+        ests = [dict(p, **values[c.estimator]) if c.estimator in values else p
+                for c, p in zip(self.cases, params.estimators)]
+        return params._replace(estimators=ests)
+
+    def tune_lanes(self, chosen) -> list[str]:
+        """The cases whose statistics a tuning of ``chosen`` estimators minimises."""
+        return [c.label for c in self.cases if c.estimator in chosen]
+
+    def write_tuned(self, doc, values: dict):
+        for table, e in zip(doc.get("estimator", []), self.estimators):
+            if e.label in values:
+                table.update({n: float(v) for n, v in values[e.label].items()})
+
+    def tune_memory_bytes(self, runs_per_step) -> float:
+        """Reverse mode keeps every run's loop state (servo blocks, estimator: ~40 values) per tick."""
+        return runs_per_step * self.ticks * len(self.cases) * 40 * 8.0
+
+    def simulate(self, runs, seed, progress=None, precision=None, chunk=None):
+        from tracklab.montecarlo import runner
+        from tracklab.servo.world import world
+
+        training, trained = {}, {}
+        for e in self.estimators:
+            if e.kind == "dekf" and e.train_steps > 0:
+                est, training[e.label] = self.train(e, self.build_estimator(e), progress)
+                trained[e.label] = est.params
+        structure = self.structure(chunk)
+        out = runner.run(world(structure), self.params(trained), runs, seed, precision=precision or self.precision,
+                         progress=progress)
         cases, examples = {}, {}
-        t_start = time.perf_counter()
-        compile_s = 0.0
-        for ci, case in enumerate(self.cases):
-            est = ests.get(case.estimator) if case.estimator not in (None, "perfect") else None
-
-            def one(key, case=case, est=est):
-                r = track(axis, case.mode, target, self.frames, key, estimator=est, prior=prior,
-                          frame_ticks=self.frame_ticks, delay=self.delay, noise=self.noise / 3600.0,
-                          accel_ff=self.accel_ff, perfect=case.estimator == "perfect")
-                e = r["error"][late]
-                resid = e - jnp.asarray(basis) @ (jnp.asarray(pinv) @ e)
-                rate = jnp.where(jnp.asarray(frame_late), jnp.abs(r["rate_error"]), 0.0)
-                return jnp.max(jnp.abs(e)), jnp.sqrt(jnp.mean(resid**2)), jnp.max(rate), r["error"], r["rate_error"]
-
-            fn = jax.jit(jax.vmap(one))
-            chunk = CHUNK
-            parts = []
-            for c in range(0, runs, chunk):
-                t0 = time.perf_counter()
-                res = jax.device_get(fn(keys[c:c + chunk]))
-                if c == 0 and ci == 0:
-                    compile_s = time.perf_counter() - t0
-                if c == 0:
-                    examples[case.label] = {"error": res[3][0], "rate_error": res[4][0]}
-                parts.append([np.asarray(a) for a in res[:3]])
-                if progress:
-                    progress(ci * runs + min(c + chunk, runs), len(self.cases) * runs)
-            mx, rnd, rate = (np.concatenate([p[i] for p in parts]) for i in range(3))
-            summary = case_summary(mx, rnd, rate if est is not None else None)
-            cases[case.label] = {"kind": case.mode, "label": case.label, "estimator": case.estimator,
+        for case in structure.cases:
+            s = out.sums[case.label]
+            examples[case.label] = {"error": np.asarray(s.pop("example_error")),
+                                    "rate_error": np.asarray(s.pop("example_rate_error"))}
+            summary = case_summary(s, runs, case.estimator not in (None, "perfect"))
+            cases[case.label] = {"kind": case.mode, "label": case.label, "estimator": self._case(case.label).estimator,
                                  "summary": summary, "series": {}}
-        wall = time.perf_counter() - t_start
+        n_ticks = self.ticks
+        t = (self.frame_dt / self.frame_ticks) * np.arange(n_ticks)
         stride = max(1, n_ticks // 3000)
         return {
             "name": self.name, "runs": runs, "steps": self.frames, "dt": self.frame_dt, "series_stride": 1,
-            "window": [1, self.frames], "wall_s": wall, "compile_s": compile_s, "experiment": self.raw,
+            "window": [1, self.frames], "wall_s": out.wall_s, "compile_s": out.compile_s, "experiment": self.raw,
             "units": ["deg", "deg/s"], "axes": ["az"],
             "training": training,
             "filters": cases,
@@ -280,51 +356,23 @@ class ServoExperiment:
         return next(c for c in self.cases if c.label == label)
 
 
-def case_summary(max_err, random_err, rate_err=None) -> dict:
-    """One case's statistics from its runs' values (deg, deg, deg/s; ``rate_err`` None without
-    an estimator). A diverged run (a non-finite value, or an error past half a turn: the target
-    lost) is counted, not averaged; with no healthy run every statistic is NaN (missing)."""
-    runs = len(max_err)
-    ok = np.isfinite(max_err) & np.isfinite(random_err) & (np.abs(max_err) <= LOST)
-    if rate_err is not None:
-        ok &= np.isfinite(rate_err)
+def case_summary(sums: dict, runs: int, estimated: bool) -> dict:
+    """One case's statistics from its sums over the runs (deg, deg, deg/s; the rate error only
+    with an estimator). A diverged run (a non-finite value, or an error past half a turn: the
+    target lost) is counted, not averaged; with no healthy run every statistic is NaN (missing)."""
+    n = float(sums["healthy"])
 
-    def healthy(v, f):
-        return float(f(v[ok])) if ok.any() else float("nan")
+    def mean(key, scale=1.0):
+        return float(sums[key]) / n * scale if n > 0 else float("nan")
 
     return {
-        "max_track_err": healthy(max_err, np.mean) * 60.0,  # arcmin
-        "max_track_err_worst": healthy(max_err, np.max) * 60.0,
-        "random_err": healthy(random_err, np.mean) * 3600.0,  # arcsec
-        "max_rate_err": healthy(rate_err, np.mean) if rate_err is not None else float("nan"),
-        "diverged": int(np.sum(~ok)),
+        "max_track_err": mean("sum_max_err", 60.0),  # arcmin
+        "max_track_err_worst": float(sums["max_max_err"]) * 60.0 if n > 0 else float("nan"),
+        "random_err": mean("sum_random_err", 3600.0),  # arcsec
+        "max_rate_err": mean("sum_rate_err") if estimated else float("nan"),
+        "diverged": int(round(float(sums["diverged"]))),
         "runs": int(runs),
     }
-
-
-def cone_target(half_angle, axis_elevation, period):
-    """Azimuth of a point circling a cone (the dynamic-target rig): θ, θ̇, θ̈ in degrees."""
-    import jax
-    import jax.numpy as jnp
-
-    b, e = math.radians(half_angle), math.radians(axis_elevation)
-    a = jnp.array([0.0, math.cos(e), math.sin(e)])  # axis towards north at elevation e
-    e1 = jnp.array([1.0, 0.0, 0.0])
-    e2 = jnp.cross(a, e1)
-    w = 2 * math.pi / period
-
-    def az(t):
-        d = math.cos(b) * a + math.sin(b) * (jnp.cos(w * t) * e1 + jnp.sin(w * t) * e2)
-        return jnp.degrees(jnp.arctan2(d[0], d[1]))
-
-    d1 = jax.grad(az)
-    d2 = jax.grad(d1)
-
-    def target(t):
-        t = jnp.asarray(t, float)
-        return jnp.stack([az(t), d1(t), d2(t)])
-
-    return target
 
 
 def write_servo_results(doc, folder: Path, figures=True):
@@ -387,6 +435,7 @@ def load_servo_experiment(f: Path, raw: dict, section) -> ServoExperiment:
     check_sections(f, raw, ("experiment", "target", "case"), ("experiment", "servo", "target", "estimator", "case"),
                    "a servo experiment")
     name, runs, seed, precision, ex = experiment_header(f, raw, section)
+    chunk = ex.integer("chunk", None, lo=1, hi=100_000)
     ex.check_unknown()
     sv = section(f, "servo", raw["servo"])
     frames = sv.integer("frames", 3000, lo=10, hi=10_000_000)
@@ -466,4 +515,4 @@ def load_servo_experiment(f: Path, raw: dict, section) -> ServoExperiment:
     if camera_loops:
         _check_latency(f, delay, frame_dt, camera_loops[0])
     return ServoExperiment(f, name, runs, seed, frames, frame_dt, frame_ticks, delay, noise, settle, accel_ff, target,
-                           estimators, cases, raw, precision=precision)
+                           estimators, cases, raw, precision=precision, chunk=chunk)

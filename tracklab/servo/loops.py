@@ -159,7 +159,7 @@ class Estimator:
 
 def track(axis: AzimuthAxis, mode: str, target: Callable, frames: int, key, *, estimator: Estimator | None = None,
           prior=None, frame_ticks: int = 10, delay: int = 2, noise: float = 0.0, accel_ff: float = 0.0,
-          perfect: bool = False):
+          perfect: bool = False, estimator_params=None):
     """Simulate ``frames`` camera frames of the axis following ``target(t) -> (θ, θ̇, θ̈)``.
 
     The camera exposes at each frame's first tick (target and boresight at the
@@ -178,7 +178,9 @@ def track(axis: AzimuthAxis, mode: str, target: Callable, frames: int, key, *, e
     T = axis.dt
     noise_all = noise * jax.random.normal(key, (frames,))
     flt = None if estimator is None else estimator.filter
-    params = None if estimator is None else (estimator.params if estimator.params is not None else flt.params)
+    params = None if estimator is None else (
+        estimator_params if estimator_params is not None
+        else estimator.params if estimator.params is not None else flt.params)
     if flt is None and mode != "double_loop" and not perfect:
         raise ValueError(f"mode {mode} needs an estimator (or perfect = True)")
     est0 = flt.init(params, prior) if flt is not None else jnp.zeros(())
@@ -237,7 +239,7 @@ def kalman_estimator(frame_dt: float, sigma: float, q: float) -> Estimator:
     from tracklab.sensors import Sensor
 
     model = ca(1, frame_dt)
-    flt = build("kf", model, Sensor("cartesian", 1, (sigma,)), noise_params(q, np.array([sigma**2])))
+    flt = build("kf", model, Sensor("cartesian", 1, (sigma,)), noise_params(q, jnp.reshape(jnp.asarray(sigma) ** 2, (1,))))
     F = jnp.asarray(model.F)
 
     def ahead(params, state, out, n):

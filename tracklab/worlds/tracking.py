@@ -1,29 +1,30 @@
-"""Monte-Carlo engine: simulate -> measure -> filter -> streaming statistics.
+"""The open-loop tracking world: simulate -> measure -> filter -> per-step sums.
 
-One jitted function handles a chunk of runs. Run i's truth, measurements and
-prior come from ``fold_in(key, i)``. One ``lax.scan`` over the steps carries
-every run's truth and every filter's state: at each step the runs' truths
-advance, their measurements are made, every filter steps (``vmap`` over runs)
-and the errors are reduced over the runs to per-step sums (and maxima). The
-random draws of the whole chunk are made first, in float32 (``tracklab.random``),
-so nothing of size (runs × steps) is kept in the working precision. Chunks are
-added up on the host, so memory grows with ``chunk × steps`` at most, never with
-``runs × steps``.
+A chunk of runs is one ``lax.scan`` over the steps that carries every run's
+truth and every filter's state: at each step the runs' truths advance, their
+measurements are made, every filter steps (``vmap`` over runs) and the errors
+are reduced over the runs to per-step sums (and maxima). The random draws of
+the whole chunk are made first, in float32 (``tracklab.random``), so nothing
+of size (runs × steps) is kept in the working precision. One scan serves every
+compared filter, and a filter state that is the same in every run (a linear
+KF's covariance when the report pattern is) is carried once, not per run.
 
-With several devices (on the CPU, ``import tracklab`` makes one per core) each
-device runs its share of the chunk's runs on its own (``shard_map``) and their
-sums are added once at the end. The statistics depend on neither the chunk size
-nor the device count, beyond the order of floating-point additions.
+Every number — scenario, sensors, prior, filters — is a leaf of
+``TrackingParams``, an argument of the compiled program; ``TrackingStructure``
+(the filters' kinds, models and views, the report windows, the chunk size) and
+the params' pytree structure are what the program is compiled for. The runner
+(``tracklab.montecarlo.runner``) drives the chunks: keys, devices, padding,
+divergence, progress, timing and the host-side sums.
 
 A run in which a filter produces NaN/inf or a covariance that is not positive
 definite is *diverged* for that filter: it is counted and left out of that
-filter's averages (the chunk is run a second time without it, see
-``rerun_without_diverged``); it never stops the batch.
+filter's averages (the runner runs the chunk a second time without it); it
+never stops the batch.
 """
 
 from __future__ import annotations
 
-import time
+import functools
 from dataclasses import dataclass, field
 from typing import Any, Callable, NamedTuple, Sequence
 
@@ -33,15 +34,33 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab import random
+from tracklab.filters import build
 from tracklab.filters.core import Filter, Meas, Prior
+from tracklab.filters.fusion import view_of
 from tracklab.linalg import elementwise_products, mahalanobis2, mahalanobis2_logdet, norm, sum_elements
-from tracklab.models import Kinematic
+from tracklab.models import MODELS, Kinematic, cv
+from tracklab.montecarlo import runner
 from tracklab.sensors import SensorSuite
 
 
-@dataclass(frozen=True)
+class Realised(NamedTuple):
+    """A filter as one chunk's scan runs it (built inside the program, from traced numbers)."""
+
+    filter: Filter
+    model: Kinematic  # the reporting frame's layout (pos_idx, vel_idx, embed)
+    view: Callable | None  # what the filter sees of the sensors' z: (T, M) -> (T, m); None: all of it
+    prior_extra_var: Any  # prior variance of states beyond position/velocity
+
+
+def _pv_index(m: Kinematic) -> np.ndarray:
+    """Indices of [x, ẋ, y, ẏ, ...] (the truth's CV layout) in a filter's report."""
+    return np.array([i for a in range(m.dim) for i in (m.pos_idx[a], m.vel_idx[a])])
+
+
+@dataclass(frozen=True, eq=False)
 class FilterSpec:
-    """A filter as the engine runs it: the filter, its label and its reporting layout."""
+    """A filter built outside an experiment file (a user's own): the filter, its label and its
+    reporting layout. Part of a program's structure by identity: a new object compiles anew."""
 
     label: str
     kind: str
@@ -52,26 +71,88 @@ class FilterSpec:
 
     @property
     def pv_index(self) -> np.ndarray:
-        """Indices of [x, ẋ, y, ẏ, ...] (the truth's CV layout) in the filter's report."""
-        m = self.model
-        return np.array([i for a in range(m.dim) for i in (m.pos_idx[a], m.vel_idx[a])])
+        return _pv_index(self.model)
+
+    def view_for(self, sensor):
+        return self.view
+
+    def realise(self, scenario, sensor, params, extra_var) -> Realised:
+        return Realised(self.filter, self.model, self.view, self.prior_extra_var)
 
 
-@dataclass
-class Sums:
-    """Per-step sums over runs for one filter (host-side accumulator)."""
+@dataclass(frozen=True)
+class DeclaredFilter:
+    """A filter of an experiment file, as structure: its kind, motion model, options and what it
+    sees. Its numbers arrive as the params of the program, where ``realise`` builds it."""
 
-    data: dict[str, np.ndarray] = field(default_factory=dict)
+    label: str
+    kind: str
+    model: str  # "cv" | "ca"
+    options: tuple = ()  # sorted (name, value) pairs, hashable
+    sensors: tuple[str, ...] = ()  # the sensors it sees (all when empty)
+    fusion: str | None = None  # laser + infrared fusion view: "interpolate" | "none"
 
-    def add(self, chunk: dict[str, np.ndarray]):
-        for k, v in chunk.items():
-            v = np.asarray(v, dtype=np.float64)
-            if k not in self.data:
-                self.data[k] = v.copy()
-            elif k.startswith("max_"):
-                self.data[k] = np.fmax(self.data[k], v)
-            else:
-                self.data[k] = self.data[k] + v
+    @property
+    def option_dict(self) -> dict:
+        return dict(self.options)
+
+    def _names(self):
+        names = self.sensors
+        guide = self.option_dict.get("guide", "previous")
+        if guide != "previous":  # error_space: [main, guide]
+            names = tuple(names) + (guide,)
+        return names
+
+    def view_for(self, sensor):
+        return view_of(sensor, self._names(), self.fusion)[0]
+
+    def realise(self, scenario, sensor, params, extra_var) -> Realised:
+        model = MODELS[self.model](scenario.dim, scenario.dt)
+        view, meas = view_of(sensor, self._names(), self.fusion)
+        flt = build(self.kind, model, meas, params, self.option_dict)
+        report = cv(scenario.dim, scenario.dt) if self.kind == "polar_kf" else model
+        return Realised(flt, report, view, extra_var)
+
+
+def hashable(v):
+    """Lists (and nested lists) as tuples, so that a filter's options can be part of a structure."""
+    if isinstance(v, (list, tuple)):
+        return tuple(hashable(x) for x in v)
+    if isinstance(v, dict):
+        return tuple(sorted((k, hashable(x)) for k, x in v.items()))
+    return v
+
+
+@dataclass(frozen=True)
+class TrackingStructure:
+    """What an open-loop program is compiled for, besides the params' pytree structure."""
+
+    filters: tuple  # DeclaredFilter or FilterSpec, one per compared filter
+    windows: tuple = ()  # (name, (steps,) bools): where each run's largest prediction error is taken
+    chunk: int = 1000  # runs per chunk
+    elementwise: bool = True  # small matrix products element by element (linalg.elementwise_products)
+
+    @property
+    def labels(self) -> list[str]:
+        return [f.label for f in self.filters]
+
+    def window_masks(self) -> dict:
+        return {name: np.asarray(mask, bool) for name, mask in self.windows}
+
+
+class TrackingParams(NamedTuple):
+    """Every number of an open-loop experiment: the program's argument."""
+
+    scenario: Any  # a scenario pytree (tracklab.scenarios)
+    sensor: SensorSuite
+    P0: Any  # (2d, 2d) prior covariance, CV layout
+    prior_extra_var: Any  # prior variance of filter states beyond position/velocity
+    filters: list  # each filter's parameter pytree
+
+
+def windows_of(masks: dict | None) -> tuple:
+    """Named step masks as a hashable structure field."""
+    return tuple((name, tuple(bool(b) for b in np.asarray(m))) for name, m in (masks or {}).items())
 
 
 @dataclass
@@ -92,8 +173,8 @@ class MonteCarloResult:
     windows: list[str] = field(default_factory=list)  # named windows of the prediction-error maxima
 
 
-def _run_keys(key, idx):
-    keys = jax.vmap(lambda i: jax.random.fold_in(key, i))(idx)
+def _split_keys(keys):
+    """A run's key -> its truth, measurement and prior keys."""
     split = jax.vmap(lambda k: jax.random.split(k, 3))(keys)
     return split[:, 0], split[:, 1], split[:, 2]
 
@@ -122,9 +203,10 @@ class _RunErrors(NamedTuple):
 class _Lane:
     """One filter inside a chunk's scan: its vmapped step and how its state is batched."""
 
-    spec: FilterSpec
+    label: str
     init: Callable  # prior (2d,) of one run -> filter state
     body: Callable  # (state, (z_k, truth_k, t_k, present_k, reports_k)) -> (state, per-run errors), one run
+    view: Callable | None
     pattern: np.ndarray  # (T, m) which components of the filter's view are reported at each step
     present: Any  # (T, m) pattern as an array when it is the same in every run, else None
     reports: np.ndarray  # (T,) steps with some component reported
@@ -132,23 +214,18 @@ class _Lane:
     wmask: np.ndarray  # (T, windows)
 
 
-def _lane(spec: FilterSpec, params, P0_cv, pattern, detect_all, windows, dtype) -> _Lane:
-    """Set up one filter for the chunk's scan (``pattern``: the sensors' report pattern (T, M))."""
-    flt = spec.filter
+def _lane(label, real: Realised, params, P0_cv, pattern, detect_all, windows, dtype) -> _Lane:
+    """Set up one filter for the chunk's scan (``pattern``: the report pattern (T, m) of what it sees)."""
+    flt = real.filter
     T = pattern.shape[0]
-    if spec.view is not None:  # the view's report pattern: NaN where the sensors have nothing
-        with jax.ensure_compile_time_eval():
-            template = jnp.where(jnp.asarray(pattern), jnp.ones((), dtype), jnp.nan)
-            pattern = np.isfinite(np.asarray(spec.view(template)))
-    pv = spec.pv_index
+    pv = _pv_index(real.model)
     reports = pattern.any(axis=-1)
     coast = flt.coast if (flt.coast is not None and not reports.all()) else None
-    P0_cv = jnp.asarray(P0_cv, dtype)
     names = list(windows or {})
     wmask = (np.stack([np.asarray(windows[n], bool) for n in names], axis=1) if names else np.zeros((T, 0), bool))
 
     def init(prior_r):
-        x0, P0 = spec.model.embed(prior_r, P0_cv, spec.prior_extra_var)
+        x0, P0 = real.model.embed(prior_r, P0_cv, real.prior_extra_var)
         return flt.init(params, Prior(x0, P0))
 
     def body(state, inp):  # one run, one step: filter, then that run's errors
@@ -173,7 +250,16 @@ def _lane(spec: FilterSpec, params, P0_cv, pattern, detect_all, windows, dtype) 
                                 f(e_pred))
 
     present = jnp.asarray(pattern) if detect_all else None
-    return _Lane(spec, init, body, pattern, present, reports, names, wmask)
+    return _Lane(label, init, body, real.view, pattern, present, reports, names, wmask)
+
+
+def _view_pattern(view, pattern, dtype):
+    """The report pattern of a view of the sensors: where it is not NaN given the sensors' pattern."""
+    if view is None:
+        return pattern
+    with jax.ensure_compile_time_eval():
+        template = jnp.where(jnp.asarray(pattern), jnp.ones((), dtype), jnp.nan)
+        return np.isfinite(np.asarray(view(template)))
 
 
 # a step's sums over the runs and maxima over the runs, each one vector per filter inside the
@@ -232,17 +318,17 @@ def _named(v, names, d):
     return out
 
 
-def simulate_runs(scenario, sensor, L0, key, idx):
-    """Runs ``idx`` as the engine simulates them: (truth (B, T+1, 2d), z (B, T, M), prior (B, 2d)).
+def simulate_runs(scenario, sensor, P0_cv, key, idx):
+    """Runs ``idx`` as the tracking world simulates them: (truth (B, T+1, 2d), z (B, T, M), prior (B, 2d)).
 
-    Run i's truth, measurements and prior mean come from ``fold_in(key, i)``;
-    ``L0`` is the Cholesky factor of the prior covariance (CV layout). The engine
-    draws the same values step by step inside its scan; this gives them whole.
+    Run i's truth, measurements and prior mean come from ``fold_in(key, i)`` (the runner's keys);
+    ``P0_cv`` is the prior covariance (CV layout). The world draws the same values step by step
+    inside its scan; this gives them whole.
     """
-    k_truth, k_meas, k_prior = _run_keys(key, idx)
+    k_truth, k_meas, k_prior = _split_keys(runner.run_keys(key, idx))
     truth = jax.vmap(scenario.simulate)(k_truth)  # (B, T+1, 2d)
     z = jax.vmap(sensor.measure)(k_meas, truth[:, 1:, 0::2])  # (B, T, M)
-    return truth, z, _prior_means(truth[:, 0], k_prior, L0)
+    return truth, z, _prior_means(truth[:, 0], k_prior, jnp.linalg.cholesky(jnp.asarray(P0_cv)))
 
 
 def _prior_means(truth0, k_prior, L0):
@@ -290,49 +376,40 @@ def _shared_leaves(init, body, prior, z_k, truth_k, fixed):
     return [not f for f in state_flags]
 
 
-def _streams(scenario, specs) -> bool:
+def _streams(scenario, views) -> bool:
     """Whether the chunk can draw truth and measurements step by step inside its scan: the
     truth is the same in every run or has a one-step ``advance``, and every filter sees each
     step's measurement alone (a view that registers one sensor's reports in time needs them all)."""
     truth_ok = not scenario.per_run or hasattr(scenario, "advance")
-    return truth_ok and all(s.view is None or getattr(s.view, "rowwise", False) for s in specs)
+    return truth_ok and all(v is None or getattr(v, "rowwise", False) for v in views)
 
 
-def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, windows=None, elementwise=True):
-    """The compiled per-chunk computation: (params_list, key, idx, live[, exclude]) -> sums
-    (per filter label, the named per-step sums; NumPy arrays when called outside a trace,
-    traced arrays inside one, e.g. under ``jax.grad``; ``.lower`` is the jitted function's).
+def _stand_in(tree):
+    """A concrete copy of a (traced) pytree with every leaf 1: for what depends on structure alone."""
+    return jax.tree_util.tree_map(lambda a: np.ones(np.shape(a)), tree)
 
-    ``windows``: name -> (steps,) bool mask, the report windows of the one-step
-    prediction error's per-run maxima. ``exclude`` (filters, B) bool: runs left out
-    of each filter's sums (none if not given). ``elementwise``: write the small matrix
-    products of filters whose state is carried per run element by element
-    (``linalg.elementwise_products``: faster to run, slower to compile and to differentiate).
 
-    One ``lax.scan`` over the steps carries every run's truth and every filter's
-    state; at each step it draws the runs' measurements, steps every filter
-    (``vmap`` over runs) and reduces the errors over the runs, so nothing of size
-    (runs × steps) is made. (When a filter's view needs a sensor's whole sequence,
-    the truth and measurements are drawn first, as ``simulate_runs`` does, and read
-    step by step.)
-    """
-    d = scenario.dim
-    T = scenario.steps
-    P0_cv = jnp.asarray(P0_cv)
-    L0 = jnp.linalg.cholesky(P0_cv)
-    if not isinstance(sensor, SensorSuite):
-        sensor = SensorSuite((sensor,))
-    pattern = np.concatenate([np.repeat(s.report_mask(T)[:, None], s.m, axis=1) for s in sensor.sensors],
-                             axis=1)  # (steps, M): which components each sensor reports at each step
-    report_masks = np.stack([s.report_mask(T) for s in sensor.sensors], axis=1)  # (steps, sensors)
-    detect_all = all(s.p_detect >= 1.0 for s in sensor.sensors)
-    with_bound = scenario.linear_gaussian() is not None  # no PCRLB, no information to gather
-    stream = _streams(scenario, specs)
+def _chunk(structure: TrackingStructure):
+    """The tracking world's chunk: (params, keys, live, exclude) -> sums (packed; see ``unpack``)."""
+    windows = structure.window_masks()
+    elementwise = structure.elementwise
 
-    def local(params_list, key, idx, live, exclude):  # the runs ``idx`` on one device
+    def local(params: TrackingParams, keys, live, exclude):  # the runs of ``keys`` on one device
+        scenario, sensor = params.scenario, params.sensor
+        d, T, dt = scenario.dim, scenario.steps, scenario.dt
+        P0_cv = params.P0
+        L0 = jnp.linalg.cholesky(P0_cv)
         dtype = L0.dtype
-        k_truth, k_meas, k_prior = _run_keys(key, idx)
-        B = idx.shape[0]
+        pattern = np.concatenate([np.repeat(s.report_mask(T)[:, None], s.m, axis=1) for s in sensor.sensors],
+                                 axis=1)  # (steps, M): which components each sensor reports at each step
+        report_masks = np.stack([s.report_mask(T) for s in sensor.sensors], axis=1)  # (steps, sensors)
+        detect_all = not any(s.misses for s in sensor.sensors)
+        with_bound = scenario.gaussian  # no PCRLB, no information to gather
+        stand_in = _stand_in(sensor)
+        views = [f.view_for(stand_in) for f in structure.filters]
+        stream = _streams(scenario, views)
+        k_truth, k_meas, k_prior = _split_keys(keys)
+        B = keys.shape[0]
         t = dt * jnp.arange(1, T + 1, dtype=dtype)
         if stream and not scenario.per_run:  # one truth for every run: a table
             table = jnp.asarray(scenario.simulate(None), dtype)  # (T+1, 2d)
@@ -351,10 +428,14 @@ def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, wind
             meas_draws = jax.vmap(lambda k: sensor.draws(k, T), out_axes=1)(k_meas)
             accel = jax.vmap(scenario.draws, out_axes=1)(k_truth) if scenario.per_run else None
 
-        lanes = [_lane(s, p, P0_cv, pattern, detect_all, windows, dtype) for s, p in zip(specs, params_list)]
+        lanes = []
+        for f, p, view in zip(structure.filters, params.filters, views):
+            real = f.realise(scenario, sensor, p, params.prior_extra_var)
+            lanes.append(_lane(f.label, real, p, P0_cv, _view_pattern(view, pattern, dtype), detect_all, windows,
+                               dtype))
         z_views = []
         if not stream:  # a view of the whole sequence per run, time-major
-            z_views = [z_all if ln.spec.view is None else jax.vmap(ln.spec.view, in_axes=1, out_axes=1)(z_all)
+            z_views = [z_all if ln.view is None else jax.vmap(ln.view, in_axes=1, out_axes=1)(z_all)
                        for ln in lanes]
         truth_batched = scenario.per_run or not stream
         steps, carries, per_run_state = [], [], []
@@ -410,9 +491,9 @@ def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, wind
                 # the sums of the step before, from its per-run errors held in the carry: a loop
                 # variable is computed once, where XLA would otherwise recompute the filter's
                 # arithmetic inside every reduction that reads it
-                out[ln.spec.label], bad_any, runmax = lane_stats(i, pending, bad_any, runmax)
+                out[ln.label], bad_any, runmax = lane_stats(i, pending, bad_any, runmax)
                 present_k, reports_k, w_k = lane_in[i]
-                z_f = zv_k[i] if not stream else (z_k if ln.spec.view is None else ln.spec.view(z_k))
+                z_f = zv_k[i] if not stream else (z_k if ln.view is None else ln.view(z_k))
                 with elementwise_products(per_run_state[i]):
                     state, per_run = step(state, (z_f, truth_k, t_k, present_k, reports_k))
                 x_first = per_run.e[:, 0] + (truth_k[0] if truth_batched else truth_k)  # run 0's estimate
@@ -428,54 +509,31 @@ def make_chunk_fn(scenario, sensor, specs: Sequence[FilterSpec], P0_cv, dt, wind
                                                     out["_example"]["truth"]])
         if not with_bound:
             out["_info"] = jnp.zeros((T, d, d), dtype)
+        flags = []
         for i, (ln, (_, pending, bad_any, runmax)) in enumerate(zip(lanes, finals)):
             last, bad_any, runmax = lane_stats(i, pending, bad_any, runmax)  # the last step's sums
-            sums, maxima, x_first = (jnp.concatenate([a[1:], b[None]]) for a, b in zip(out[ln.spec.label], last))
-            out[ln.spec.label] = {"sums": sums, "maxima": maxima, "example_x": x_first}  # cut by _unpack
+            sums, maxima, x_first = (jnp.concatenate([a[1:], b[None]]) for a, b in zip(out[ln.label], last))
+            out[ln.label] = {"sums": sums, "maxima": maxima, "example_x": x_first}  # cut by _unpack
             ok = live & ~exclude[i] & ~bad_any
             for j, name in enumerate(ln.names):  # sum over runs of each run's largest |error| (per axis, then norm)
-                out[ln.spec.label][f"runmax_pred@{name}"] = jnp.sum(jnp.where(ok, runmax[j], 0.0), axis=-1)
-            out[ln.spec.label]["diverged"] = jnp.sum((live & bad_any).astype(dtype))
-            out[ln.spec.label]["diverged_runs"] = live & bad_any
+                out[ln.label][f"runmax_pred@{name}"] = jnp.sum(jnp.where(ok, runmax[j], 0.0), axis=-1)
+            out[ln.label]["diverged"] = jnp.sum((live & bad_any).astype(dtype))
+            flags.append(live & bad_any)
+        # (filters, B): the runner runs the chunk again without them
+        out["diverged_runs"] = jnp.stack(flags) if flags else jnp.zeros((0, B), bool)
         return out
 
-    devices = jax.devices()
-    n_dev = len(devices)
-    if n_dev > 1:  # each device reduces its own runs; the per-device sums are combined once at the end
-        mesh = jax.sharding.Mesh(np.array(devices), ("runs",))
-        runs_axis = jax.sharding.PartitionSpec("runs")
-        per_device = jax.shard_map(
-            lambda *a: jax.tree_util.tree_map(lambda v: v[None], local(*a)), mesh=mesh,
-            in_specs=(jax.sharding.PartitionSpec(), jax.sharding.PartitionSpec(), runs_axis, runs_axis,
-                      jax.sharding.PartitionSpec(None, "runs")),
-            out_specs=runs_axis, check_vma=False)
 
-    def chunk(params_list, key, idx, live, exclude=None):
-        B = idx.shape[0]
-        if exclude is None:
-            exclude = jnp.zeros((len(specs), B), bool)
-        if n_dev == 1:
-            return local(params_list, key, idx, live, exclude)
-        pad = -B % n_dev  # dead runs to fill the last device
-        if pad:
-            idx = jnp.concatenate([idx, jnp.zeros((pad,), idx.dtype)])
-            live = jnp.concatenate([live, jnp.zeros((pad,), bool)])
-            exclude = jnp.concatenate([exclude, jnp.ones((len(specs), pad), bool)], axis=1)
-        return _combine(per_device(params_list, key, idx, live, exclude), B)
-
-    jitted = jax.jit(chunk)
-
-    def chunk_fn(params_list, key, idx, live, exclude=None):
-        out = jitted(params_list, key, idx, live, exclude)
-        if not any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(out)):
-            out = jax.device_get(out)  # called eagerly: the results cut into their parts on the host
-        return _unpack(out, d)
-
-    chunk_fn.lower = jitted.lower
-    return chunk_fn
+    return local
 
 
-def _unpack(out, d):
+@functools.lru_cache(maxsize=64)
+def world(structure: TrackingStructure) -> runner.World:
+    """The tracking world of a structure (one per structure: its compiled programs are shared)."""
+    return runner.World(structure, _chunk(structure), len(structure.filters), structure.chunk)
+
+
+def unpack(out, d):
     """Each filter's per-step sums and maxima as named arrays, from the two vectors per step that
     the scan writes (``_lane_sums``); the leading axes (steps, grid points) are kept. Cut after
     the compiled chunk, each part is not an output buffer and a kernel of its own."""
@@ -487,19 +545,43 @@ def _unpack(out, d):
     return res
 
 
-def _combine(out, B):
-    """One chunk's results from the per-device results (leading axis: device)."""
-    def leaf(path, v):
-        name = getattr(path[-1], "key", "")
-        if path[0].key == "_example" or name == "example_x":  # run 0 lives on the first device
-            return v[0]
-        if name == "diverged_runs":
-            return v.reshape(-1)[:B]
-        if name == "maxima":
-            return jnp.max(v, axis=0)
-        return jnp.sum(v, axis=0)
+def default_chunk(scenario, sensor, budget=2**28) -> int:
+    """Runs per chunk when the experiment does not say: 1 000 per device (with several filters
+    in the scan, larger shares run slower on the CPU: their states no longer stay in cache),
+    fewer if a chunk's per-step arrays (truth and measurements of every run and step, 8 bytes
+    a value) would pass ``budget`` bytes (256 MiB); at least 64. It depends on the structure
+    alone, never on the run count: any number of runs uses the same compiled program."""
+    width = 2 * scenario.dim + sensor.m
+    return int(np.clip(budget // (8 * scenario.steps * width), 64, 1000 * jax.device_count()))
 
-    return jax.tree_util.tree_map_with_path(leaf, out)
+
+def run(structure: TrackingStructure, params: TrackingParams, runs: int, key, *, progress=None,
+        precision: str = "float64", points: int | None = None):
+    """Per-step error statistics of the structure's filters over ``runs`` Monte-Carlo runs: a
+    ``MonteCarloResult``, or with ``points`` (params stacked along a leading axis, as a sweep's
+    grid) a list of them, one per parameter set, all on the same runs."""
+    out = runner.run(world(structure), params, runs, key, precision=precision, points=points, progress=progress)
+    if points is None:
+        return result(structure, params, out.sums, out)
+    return [result(structure, runner.pick(params, j), runner.pick(out.sums, j), out) for j in range(points)]
+
+
+def result(structure, params, sums, out: runner.Outcome) -> MonteCarloResult:
+    """The ``MonteCarloResult`` of one parameter set's sums (the runner's, for ``out.runs`` runs)."""
+    scenario = params.scenario
+    sums = unpack(sums, scenario.dim)
+    info = sums.pop("_info")
+    ex = sums.pop("_example")
+    example = {"truth": np.asarray(ex["truth"]), "z": np.asarray(ex["z"])}
+    example["x"] = {label: np.asarray(sums[label].pop("example_x")) for label in structure.labels}
+    return MonteCarloResult(
+        runs=out.runs, steps=scenario.steps, dt=float(scenario.dt), dim=scenario.dim,
+        sums={label: sums[label] for label in structure.labels},
+        pcrlb=_pcrlb64(scenario, np.asarray(params.P0, np.float64), info / out.runs) if scenario.gaussian else None,
+        wall_s=out.wall_s, compile_s=out.compile_s, labels=structure.labels,
+        kinds={f.label: f.kind for f in structure.filters}, example=example,
+        axes=tuple(getattr(scenario, "axes", ("x", "y", "z")[: scenario.dim])),
+        units=tuple(getattr(scenario, "units", ("m", "m/s"))), windows=[n for n, _ in structure.windows])
 
 
 def monte_carlo(
@@ -526,89 +608,12 @@ def monte_carlo(
     random draws are the same (made in float32 in both). ``windows`` (name -> (steps,)
     bool mask) are where each run's largest one-step prediction error is taken.
     """
-    with jax.enable_x64(precision == "float64"):
-        return _monte_carlo(scenario, sensor, specs, runs, key, P0_cv, chunk, params, progress, precision, windows)
-
-
-def default_chunk(scenario, sensor, budget=2**28) -> int:
-    """Runs per chunk when the experiment does not say: 1 000 per device (with several filters
-    in the scan, larger shares run slower on the CPU: their states no longer stay in cache),
-    fewer if a chunk's per-step arrays (truth and measurements of every run and step, 8 bytes
-    a value) would pass ``budget`` bytes (256 MiB); at least 64."""
-    width = 2 * scenario.dim + sensor.m
-    return int(np.clip(budget // (8 * scenario.steps * width), 64, 1000 * jax.device_count()))
-
-
-def _monte_carlo(scenario, sensor, specs, runs, key, P0_cv, chunk, params, progress, precision, windows):
-    dt = float(scenario.dt)
-    chunk = int(min(chunk or default_chunk(scenario, sensor), runs))
-    fn = make_chunk_fn(scenario, sensor, specs, P0_cv, dt, windows)
-    params_list = list(params) if params is not None else [s.filter.params for s in specs]
-    if precision == "float32":
-        params_list = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float32), params_list)
-    if isinstance(key, int):
-        key = jax.random.key(key)
-
-    acc = {s.label: Sums() for s in specs}
-    info = np.zeros((scenario.steps, scenario.dim, scenario.dim))
-    example = {}
-    t_start = time.perf_counter()
-    compile_s = 0.0
-    n_chunks = -(-runs // chunk)
-    for c in range(n_chunks):
-        idx = np.arange(c * chunk, (c + 1) * chunk, dtype=np.uint32)
-        live = idx < runs
-        idx_j, live_j = jnp.asarray(idx), jnp.asarray(live)
-        t0 = time.perf_counter()
-        out = fn(params_list, key, idx_j, live_j)
-        if c == 0:
-            compile_s = time.perf_counter() - t0
-        out = rerun_without_diverged(fn, out, [s.label for s in specs], params_list, key, idx_j, live_j)
-        info += out.pop("_info")
-        ex = out.pop("_example")
-        if c == 0:  # run 0, for trajectory figures
-            example = {"truth": np.asarray(ex["truth"]), "z": np.asarray(ex["z"])}
-            example["x"] = {s.label: np.asarray(out[s.label]["example_x"]) for s in specs}
-        for label, sums in out.items():
-            sums.pop("example_x")
-            acc[label].add(sums)
-        if progress:
-            progress(min((c + 1) * chunk, runs), runs)
-    wall = time.perf_counter() - t_start
-
-    return MonteCarloResult(
-        runs=runs,
-        steps=scenario.steps,
-        dt=dt,
-        dim=scenario.dim,
-        sums={label: a.data for label, a in acc.items()},
-        pcrlb=_pcrlb64(scenario, np.asarray(P0_cv, np.float64), info / runs),
-        wall_s=wall,
-        compile_s=compile_s,
-        labels=[s.label for s in specs],
-        kinds={s.label: s.kind for s in specs},
-        example=example,
-        axes=tuple(getattr(scenario, "axes", ("x", "y", "z")[: scenario.dim])),
-        units=tuple(getattr(scenario, "units", ("m", "m/s"))),
-        windows=list(windows or {}),
-    )
-
-
-def rerun_without_diverged(fn, out, labels, params_list, key, idx, live):
-    """A chunk's sums with every run that diverged anywhere left out of them from its first step.
-
-    The scan drops a run from the sums only from the step it turns bad; when a
-    filter had such runs, the chunk is run again (same draws, same compiled
-    program) with them excluded from the start. Pops ``diverged_runs``.
-    """
-    masks = np.stack([np.asarray(out[label].pop("diverged_runs")) for label in labels])
-    if not masks.any():
-        return out
-    exclude = jnp.asarray(masks)
-    out = fn(params_list, key, idx, live, exclude)
-    for label in labels:
-        out[label].pop("diverged_runs")
-    return out
+    if not isinstance(sensor, SensorSuite):
+        sensor = SensorSuite((sensor,))
+    structure = TrackingStructure(tuple(specs), windows_of(windows), int(chunk or default_chunk(scenario, sensor)))
+    filter_params = list(params) if params is not None else [s.filter.params for s in specs]
+    p = TrackingParams(scenario, sensor, np.asarray(P0_cv, float), 0.0, filter_params)
+    return run(structure, p, runs, key, progress=progress, precision=precision)
 
 
 def _pcrlb64(scenario, P0_cv, info_pos):
@@ -636,57 +641,3 @@ def pcrlb(scenario, P0_cv, info_pos):
 
     _, out = jax.lax.scan(step, jnp.asarray(P0_cv), Jz)
     return np.asarray(out)
-
-
-# ------------------------------------------------------------------ user measurements
-
-
-@dataclass(frozen=True)
-class FilterResult:
-    x: jax.Array  # (..., T, n) filtered means
-    P: jax.Array  # (..., T, n, n) filtered covariances
-    x_pred: jax.Array  # (..., T, n) one-step predictions
-    nu: jax.Array  # (..., T, m) innovations (0 where not used)
-    S: jax.Array  # (..., T, m, m) innovation covariances
-    valid: jax.Array  # (..., T) update happened
-    dof: jax.Array  # (..., T) innovation components used
-    aux: Any = None  # what the filter family adds (e.g. the STF's fading factor), per step
-
-
-def run_filter(flt: Filter, z, *, x0, P0, params=None, dt: float = 1.0) -> FilterResult:
-    """Run a filter over a user's measurements.
-
-    ``z`` is (T, m) or (N, T, m); a row of NaN is a missed detection
-    (predict-only). ``x0, P0`` is the prior one sample period before ``z[0]``;
-    each step predicts, then updates with ``z[k]``. For single precision, build
-    the filter and call this inside ``with jax.enable_x64(False):`` with float32 inputs.
-    """
-    params = flt.params if params is None else params
-    z = jnp.asarray(z)
-    batched = z.ndim == 3
-    zb = z if batched else z[None]
-    N = zb.shape[0]
-    x0 = jnp.broadcast_to(jnp.asarray(x0, zb.dtype), (N,) + np.shape(x0)[-1:])
-    P0 = jnp.broadcast_to(jnp.asarray(P0, zb.dtype), (N,) + np.shape(P0)[-2:])
-    out = _run_filter_jit(flt.init, flt.step, params, zb, x0, P0, float(dt))
-    if not batched:
-        out = jax.tree_util.tree_map(lambda a: a[0], out)
-    return FilterResult(*out)
-
-
-def _run_filter_impl(init, step, params, z, x0, P0, dt):
-    N, T = z.shape[0], z.shape[1]
-    state = jax.vmap(init, in_axes=(None, 0))(params, Prior(x0, P0))
-    step = jax.vmap(step, in_axes=(None, 0, 0))
-    t = dt * jnp.arange(1, T + 1, dtype=z.dtype)
-
-    def body(s, inp):
-        z_k, t_k = inp
-        s, out = step(params, s, Meas(z_k, jnp.full((N,), t_k), jnp.ones((N,), bool)))
-        return s, out
-
-    _, out = jax.lax.scan(body, state, (jnp.swapaxes(z, 0, 1), t))
-    return tuple(jax.tree_util.tree_map(lambda a: jnp.swapaxes(a, 0, 1), out))
-
-
-_run_filter_jit = jax.jit(_run_filter_impl, static_argnums=(0, 1, 6))

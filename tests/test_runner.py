@@ -1,0 +1,157 @@
+"""The one Monte-Carlo runner: every world's statistics are the same for any chunk size and device
+count, numbers are inputs of the compiled program (one compile for many values and run counts)."""
+
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import numpy as np
+import pytest
+
+from tracklab.config import load_experiment
+from tracklab.montecarlo import runner
+
+AIRBORNE = """
+[experiment]
+name = "airborne_tiny"
+runs = 6
+seed = 5
+
+[airborne]
+duration = 2.0
+
+[[tracker]]
+label = "classical"
+kind = "classical"
+"""
+
+SERVO = """
+[experiment]
+name = "servo_tiny"
+runs = 6
+seed = 2
+
+[servo]
+frames = 300
+settle = 1.0
+
+[target]
+kind = "sine"
+
+[[estimator]]
+label = "KF"
+kind = "kf"
+
+[[case]]
+mode = "on_axis"
+estimator = "KF"
+"""
+
+TRACKING = """
+[experiment]
+name = "tracking_tiny"
+runs = 6
+dt = 0.5
+steps = 30
+
+[scenario]
+kind = "crossing"
+speed = 200.0
+offset = 3000.0
+start_x = -3000.0
+
+[sensor]
+kind = "polar"
+sigma_r = 50.0
+sigma_angle = 0.004
+
+[[filter]]
+kind = "ekf"
+label = "EKF"
+"""
+
+
+def _write(tmp_path, name, text):
+    path = tmp_path / f"{name}.toml"
+    path.write_text(text)
+    return path
+
+
+def _sums(exp, chunk):
+    """Every world's sums over its runs, flattened: name -> array."""
+    if hasattr(exp, "simulate"):  # servo: the summary of each case (from its sums)
+        doc = exp.simulate(exp.runs, exp.seed, chunk=chunk)
+        return {f"{c}/{k}": np.asarray(v, float) for c, f in doc["filters"].items() for k, v in f["summary"].items()}
+    if hasattr(exp, "trackers"):  # airborne
+        sums, _, _ = exp.monte_carlo(chunk=chunk)
+    else:
+        sums = exp.monte_carlo(chunk=chunk).sums
+    return {f"{lab}/{k}": np.asarray(v, float) for lab, d in sums.items() for k, v in d.items()}
+
+
+def _same(got, ref, what):
+    assert got.keys() == ref.keys()
+    for k in ref:  # equal up to the order of floating-point sums (a wrong run or key is off by far more)
+        np.testing.assert_allclose(got[k], ref[k], rtol=1e-9, atol=1e-12, err_msg=f"{what}: {k}")
+
+
+@pytest.mark.parametrize("world", ["tracking", "airborne", "servo"])
+def test_statistics_do_not_depend_on_the_chunk_size(tmp_path, world):
+    """One run per chunk, three per chunk, all in one: the same sums (run i draws from fold_in(key, i))."""
+    exp = load_experiment(_write(tmp_path, world, {"tracking": TRACKING, "airborne": AIRBORNE, "servo": SERVO}[world]))
+    ref = _sums(exp, exp.runs)
+    for chunk in (1, 3):
+        _same(_sums(exp, chunk), ref, f"chunk {chunk}")
+
+
+DEVICES = """
+import json, sys
+import jax, numpy as np
+sys.path.insert(0, sys.argv[1])
+from test_runner import _sums
+from tracklab.config import load_experiment
+out = {"devices": jax.device_count()}
+for path in sys.argv[2:]:
+    exp = load_experiment(path)
+    out[path] = {k: v.tolist() for k, v in _sums(exp, 3).items()}
+print(json.dumps(out))
+"""
+
+
+def test_statistics_do_not_depend_on_the_device_count(tmp_path):
+    """Every world's chunks split over 2 devices (3 runs a chunk: one device gets a padded, dead
+    run) give the sums of one device."""
+    paths = [_write(tmp_path, n, t) for n, t in (("tracking", TRACKING), ("airborne", AIRBORNE), ("servo", SERVO))]
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    script = tmp_path / "devices.py"
+    script.write_text(DEVICES)
+    done = subprocess.run([sys.executable, str(script), os.path.dirname(__file__), *map(str, paths)], env=env,
+                          capture_output=True, text=True, check=True)
+    doc = json.loads(done.stdout.strip().splitlines()[-1])
+    assert doc["devices"] == 2 and jax.device_count() == 1
+    for path in paths:
+        ref = _sums(load_experiment(path), 3)
+        _same({k: np.asarray(v, float) for k, v in doc[str(path)].items()}, ref, f"{path.stem}, 2 devices")
+
+
+def test_a_sensor_sigma_is_an_input_of_the_program(tmp_path):
+    """Two values of sigma_r and two run counts: one compiled program, different statistics, each
+    the same as a run of its own with a freshly compiled program."""
+    a = load_experiment(_write(tmp_path, "a", TRACKING))
+    b = load_experiment(_write(tmp_path, "b", TRACKING.replace("sigma_r = 50.0", "sigma_r = 150.0")))
+    assert a.structure() == b.structure()
+    before = runner.compiles
+    res_a = a.monte_carlo(chunk=4)
+    res_b = b.monte_carlo(chunk=4, runs=13)  # another value and another run count
+    assert runner.compiles - before <= 1  # the first call compiles (unless an earlier test did), the second never
+    assert res_b.compile_s == 0.0
+    ka = res_a.sums["EKF"]["sumsq_pos"]
+    kb = res_b.sums["EKF"]["sumsq_pos"]
+    assert not np.allclose(ka, kb)
+    runner._PROGRAMS.clear()  # a run of its own, with a program compiled for it
+    alone = b.monte_carlo(chunk=4, runs=13)
+    assert alone.compile_s > 0
+    for k, v in alone.sums["EKF"].items():
+        np.testing.assert_allclose(res_b.sums["EKF"][k], v, rtol=1e-13, atol=1e-12, err_msg=k)

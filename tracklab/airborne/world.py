@@ -1,0 +1,103 @@
+"""The airborne closed-loop world (paper 001), as the Monte-Carlo runner drives it.
+
+A chunk of runs is every tracker's closed loop (``closed_loop.engage``: the
+estimate steers the antenna) over the same runs, reduced to per-period sums
+over the runs still in lock (``closed_loop.sums``). Run i draws from the
+runner's ``fold_in(key, i)`` whatever the tracker, so the trackers are compared
+on the same target paths, designation errors and noise.
+
+Numbers are the params' leaves: the engagement, the error signals' noise and
+gains, the gates, the designation errors, the jolt, the Singer perturbation's
+one-tick transition and noise factor (computed in float64 on the host), each
+tracker's parameters and prior. The structure is the timing (radar sample
+period, samples per filter period, the antenna's lag, which the classical
+tracker's compensator is discretised with), the number of filter periods, the
+jolt's tick, whether the Singer perturbation is on, the trackers' kinds and
+the chunk size.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import jax
+
+from tracklab.airborne.cd_ekf import cd_ekf
+from tracklab.airborne.classical import classical
+from tracklab.airborne.closed_loop import LoopConfig, engage, sums
+from tracklab.airborne.decoupled import decoupled
+from tracklab.airborne.moose import moose
+from tracklab.airborne.tracker import Timing
+from tracklab.montecarlo import runner
+
+
+@dataclass(frozen=True)
+class TrackerSpec:
+    """One [[tracker]] as structure: its label, kind and (decoupled) range-velocity channel."""
+
+    label: str
+    kind: str  # cd_ekf | decoupled | classical | moose
+    range_velocity: str = "coupled"  # decoupled: "coupled" | "separate"
+
+    def build(self, timing: Timing):
+        if self.kind == "classical":
+            return classical(timing)
+        if self.kind == "moose":
+            return moose(timing)
+        if self.kind == "cd_ekf":
+            return cd_ekf(timing)
+        return decoupled(timing, self.range_velocity == "separate")
+
+
+@dataclass(frozen=True)
+class AirborneStructure:
+    trackers: tuple[TrackerSpec, ...]
+    timing: Timing
+    periods: int  # filter periods a run
+    jolt_tick: int  # the tick of the antenna's jolt (-1: none)
+    singer: bool  # the Singer perturbation on the nominal path
+    chunk: int  # runs per chunk
+
+    @property
+    def labels(self):
+        return [t.label for t in self.trackers]
+
+
+class AirborneParams(NamedTuple):
+    """Every number of an airborne experiment: the program's argument."""
+
+    engagement: Any  # airborne.engagement.Engagement (a pytree)
+    k: Any  # (4,) detector gains
+    sigma: Any  # (4,) per-sample noise of the error signals
+    limits: Any  # (3,) beam (rad), range gate (m), velocity gate (m/s)
+    acquisition: Any  # (4,) designation errors (std)
+    jolt: Any  # rad, about the d axis
+    singer_phi: Any  # (3, 3)
+    singer_L: Any  # (3, 3)
+    trackers: list  # each tracker's parameters (pytree)
+    sd0: list  # each tracker's prior standard deviations (9,)
+
+
+def _chunk(structure: AirborneStructure):
+    trackers = [t.build(structure.timing) for t in structure.trackers]
+
+    def local(params: AirborneParams, keys, live, exclude):
+        cfg = LoopConfig(structure.timing, structure.periods, params.k, params.sigma, tuple(params.limits),
+                         params.acquisition, structure.jolt_tick, params.jolt, structure.singer, params.singer_phi,
+                         params.singer_L)
+        out = {}
+        for i, (spec, tracker) in enumerate(zip(structure.trackers, trackers)):
+            p, sd0 = params.trackers[i], params.sd0[i]
+            res = jax.vmap(lambda key: engage(params.engagement, tracker, p, cfg, sd0, key))(keys)
+            out[spec.label] = sums(res, live & ~exclude[i])
+        return out
+
+    return local
+
+
+@functools.lru_cache(maxsize=16)
+def world(structure: AirborneStructure) -> runner.World:
+    """The airborne world of a structure (one per structure: its compiled programs are shared)."""
+    return runner.World(structure, _chunk(structure), len(structure.trackers), structure.chunk)

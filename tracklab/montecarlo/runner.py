@@ -1,0 +1,257 @@
+"""The Monte-Carlo runner: the one loop over runs, for every world.
+
+A *world* is what one kind of experiment simulates (open-loop tracking, the
+airborne closed loop, the servo). To the runner it is a pure function of one
+chunk of runs, ``chunk(params, keys, live, exclude) -> sums``, plus a hashable
+``structure`` that fixes everything that function compiles to:
+
+* ``params`` is a pytree holding every number of the experiment (scenario,
+  sensors, prior, filters, engagement, servo …). It is an argument of the
+  compiled program, so editing a number and running again reuses the program
+  (in this process from the runner's table, in a new one from JAX's persistent
+  cache). The program depends on the structure, the pytree's shape, the chunk
+  size, the precision and the devices — never on the run count, which only
+  decides how many chunks run.
+* ``keys[i]`` is run ``idx[i]``'s key, ``fold_in(key, idx[i])``: a run draws the
+  same numbers whatever the chunk size, device count or padding.
+* ``live`` (B,) marks real runs (the last chunk and the devices' shares are
+  padded with dead ones); ``exclude`` (lanes, B) marks runs left out of a lane's
+  sums (a lane: one compared filter, tracker or case).
+* ``sums`` is a pytree of sums over the chunk's live runs. How the parts of a
+  chunk, of the devices and of the chunks are combined follows from each leaf's
+  name (``combine_rule``): ``max…``/``min…`` are maxima/minima, ``_example…``
+  and ``example…`` belong to run 0 and are kept from the first chunk,
+  the top-level ``diverged_runs`` (lanes, B) flags per run, everything else adds
+  up. A world that reports ``diverged_runs`` has its chunk run again with those runs
+  excluded from the start (a run drops out of the sums only from the step it
+  turns bad otherwise).
+
+Sums are added on the host in float64, chunk by chunk: memory grows with
+chunk × steps, never with runs × steps. ``compile_s`` is the time spent
+tracing, lowering and compiling the program (or loading it from the persistent
+cache); 0 when this process already holds it.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Any, Callable, Hashable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+class World(NamedTuple):
+    """What the runner needs of a world (see the module's doc)."""
+
+    structure: Hashable  # all that ``chunk`` compiles to, besides the params' pytree structure and shapes
+    chunk: Callable  # (params, keys (B,), live (B,), exclude (lanes, B)) -> sums pytree; pure
+    lanes: int  # rows of ``exclude``
+    chunk_size: int  # runs per chunk (a multiple of nothing in particular; padded for the devices)
+
+
+@dataclass
+class Outcome:
+    """What the runner hands back to the world that asked."""
+
+    sums: Any  # the sums over all runs (host, float64; ``example`` leaves from the first chunk)
+    runs: int
+    chunk: int
+    wall_s: float  # the whole call
+    compile_s: float  # tracing, lowering and compiling (or loading from the persistent cache)
+    chunks: int
+
+
+def combine_rule(name: str) -> str:
+    """How a sums leaf named ``name`` is combined over parts: "max", "min", "first", "runs" or "add"."""
+    if name.startswith(("_example", "example")):
+        return "first"
+    if name == "diverged_runs":
+        return "runs"
+    if name.startswith("max"):
+        return "max"
+    if name.startswith("min"):
+        return "min"
+    return "add"
+
+
+def _leaf_name(path) -> str:
+    """The rule-giving name of a leaf: the nearest dictionary key on its path that has a rule
+    other than adding, else its last key."""
+    keys = [str(getattr(p, "key", getattr(p, "name", ""))) for p in path]
+    for k in keys:
+        if combine_rule(k) in ("first", "runs"):
+            return k
+    return keys[-1] if keys else ""
+
+
+def _combine_devices(out, B):
+    """One chunk's sums from the per-device parts (leading axis: device)."""
+
+    def leaf(path, v):
+        rule = combine_rule(_leaf_name(path))
+        if rule == "first":  # run 0 lives on the first device
+            return v[0]
+        if rule == "runs":
+            return jnp.moveaxis(v, 0, -2).reshape(v.shape[1:-1] + (-1,))[..., :B]
+        if rule == "max":
+            return jnp.max(v, axis=0)
+        if rule == "min":
+            return jnp.min(v, axis=0)
+        return jnp.sum(v, axis=0)
+
+    return jax.tree_util.tree_map_with_path(leaf, out)
+
+
+def run_keys(key, idx):
+    """Each run's key: run i draws from ``fold_in(key, i)``."""
+    return jax.vmap(lambda i: jax.random.fold_in(key, i))(idx)
+
+
+def sharded(world: World) -> Callable:
+    """``(params, key, idx, live, exclude) -> sums`` of the runs ``idx``: traceable (jit, grad,
+    vmap over params), each device running its share of the runs and the shares' sums combined."""
+    devices = jax.devices()
+    n_dev = len(devices)
+
+    def local(params, key, idx, live, exclude):
+        return world.chunk(params, run_keys(key, idx), live, exclude)
+
+    if n_dev == 1:
+        return local
+    mesh = jax.sharding.Mesh(np.array(devices), ("runs",))
+    rep, runs_axis = jax.sharding.PartitionSpec(), jax.sharding.PartitionSpec("runs")
+    per_device = jax.shard_map(
+        lambda *a: jax.tree_util.tree_map(lambda v: v[None], local(*a)), mesh=mesh,
+        in_specs=(rep, rep, runs_axis, runs_axis, jax.sharding.PartitionSpec(None, "runs")),
+        out_specs=runs_axis, check_vma=False)
+
+    def split(params, key, idx, live, exclude):
+        B = idx.shape[0]
+        pad = -B % n_dev  # dead runs to fill the last device
+        if pad:
+            idx = jnp.concatenate([idx, jnp.zeros((pad,), idx.dtype)])
+            live = jnp.concatenate([live, jnp.zeros((pad,), bool)])
+            exclude = jnp.concatenate([exclude, jnp.ones(exclude.shape[:-1] + (pad,), bool)], axis=-1)
+        return _combine_devices(per_device(params, key, idx, live, exclude), B)
+
+    return split
+
+
+def in_precision(params, precision: str):
+    """``params`` with every floating leaf in the working precision ("float32": single)."""
+    dtype = jnp.float32 if precision == "float32" else jnp.float64
+
+    def cast(a):
+        a = np.asarray(a) if not isinstance(a, jax.Array) else a
+        return jnp.asarray(a, dtype) if jnp.issubdtype(a.dtype, jnp.floating) else jnp.asarray(a)
+
+    return jax.tree_util.tree_map(cast, params)
+
+
+_PROGRAMS: OrderedDict = OrderedDict()  # (structure, shapes, chunk, precision, devices) -> compiled program
+_KEEP = 32
+compiles = 0  # programs compiled (or loaded from the persistent cache) by this process
+
+
+def program(world: World, params, precision: str = "float64", points: int | None = None):
+    """The compiled chunk program of ``world`` for params shaped like ``params`` (in ``precision``):
+    (callable, seconds spent tracing, lowering and compiling; 0 if this process already held it).
+
+    ``points``: the params hold that many parameter sets along a leading axis (a sweep's grid
+    points), evaluated on the same runs (common random numbers) by one program."""
+    global compiles
+    B = world.chunk_size
+    leaves, treedef = jax.tree_util.tree_flatten(params)
+    shapes = tuple((np.shape(a), jnp.result_type(a).name) for a in leaves)
+    key = (world.structure, treedef, shapes, B, precision, points, tuple(str(d) for d in jax.devices()))
+    if key in _PROGRAMS:
+        _PROGRAMS.move_to_end(key)
+        return _PROGRAMS[key], 0.0
+    t0 = time.perf_counter()
+    fn = sharded(world)
+    lead = ()
+    if points is not None:
+        fn = jax.vmap(fn, in_axes=(0, None, None, None, 0))
+        lead = (points,)
+    args = (params, jax.random.key(0), jnp.zeros((B,), jnp.uint32), jnp.zeros((B,), bool),
+            jnp.zeros(lead + (world.lanes, B), bool))
+    compiled = jax.jit(fn).lower(*args).compile()
+    compile_s = time.perf_counter() - t0
+    compiles += 1
+    _PROGRAMS[key] = compiled
+    while len(_PROGRAMS) > _KEEP:
+        _PROGRAMS.popitem(last=False)
+    return compiled, compile_s
+
+
+class Accumulator:
+    """Host-side sums over chunks, in float64, by each leaf's ``combine_rule``."""
+
+    def __init__(self):
+        self.total = None
+
+    def add(self, sums):
+        sums = jax.tree_util.tree_map(lambda v: np.asarray(v), sums)
+        if self.total is None:
+            self.total = jax.tree_util.tree_map_with_path(
+                lambda p, v: v if combine_rule(_leaf_name(p)) == "first" else np.asarray(v, np.float64), sums)
+            return
+
+        def leaf(path, a, b):
+            rule = combine_rule(_leaf_name(path))
+            if rule == "first":
+                return a
+            if rule == "max":
+                return np.fmax(a, b)
+            if rule == "min":
+                return np.fmin(a, b)
+            return a + np.asarray(b, np.float64)
+
+        self.total = jax.tree_util.tree_map_with_path(leaf, self.total, sums)
+
+
+def pick(tree, j):
+    """Parameter set (or its sums) ``j`` of a tree stacked along a leading axis (``points``)."""
+    return jax.tree_util.tree_map(lambda a: np.asarray(a)[j], tree)
+
+
+def pop_diverged(sums: dict):
+    """``sums`` without its top-level ``diverged_runs`` (lanes, B), and those flags (None if absent)."""
+    sums = dict(sums)
+    flags = sums.pop("diverged_runs", None)
+    return sums, (None if flags is None else np.asarray(flags))
+
+
+def run(world: World, params, runs: int, key, *, precision: str = "float64", points: int | None = None,
+        progress: Callable[[int, int], None] | None = None) -> Outcome:
+    """Run ``runs`` Monte-Carlo runs of ``world`` with ``params``, chunk by chunk; the sums of all runs.
+
+    ``key``: an integer seed or a JAX key. ``precision = "float32"`` traces and runs the world in
+    single precision (JAX's 64-bit mode off for it); the sums are added on the host in float64
+    either way. ``points``: ``params`` holds that many parameter sets along a leading axis, and
+    every sum has that leading axis. ``progress(done, runs)`` is called after every chunk.
+    """
+    t_start = time.perf_counter()
+    with jax.enable_x64(precision == "float64"):
+        if isinstance(key, (int, np.integer)):
+            key = jax.random.key(int(key))
+        params = in_precision(params, precision)
+        fn, compile_s = program(world, params, precision, points)
+        B = world.chunk_size
+        acc = Accumulator()
+        n_chunks = -(-runs // B)
+        no_exclusion = jnp.zeros(((points,) if points is not None else ()) + (world.lanes, B), bool)
+        for c in range(n_chunks):
+            idx = np.arange(c * B, (c + 1) * B, dtype=np.uint32)
+            args = (params, key, jnp.asarray(idx), jnp.asarray(idx < runs))
+            sums, flags = pop_diverged(jax.device_get(fn(*args, no_exclusion)))
+            if flags is not None and flags.any():  # the chunk again, those runs left out from their first step
+                sums, _ = pop_diverged(jax.device_get(fn(*args, jnp.asarray(flags))))
+            acc.add(sums)
+            if progress:
+                progress(min((c + 1) * B, runs), runs)
+    return Outcome(acc.total, runs, B, time.perf_counter() - t_start, compile_s, n_chunks)
