@@ -20,7 +20,7 @@ import numpy as np
 from tracklab.errors import ConfigError
 from tracklab.filters.fusion import view_of as _view
 from tracklab.filters.kind import Entry
-from tracklab.filters.registry import KINDS
+from tracklab.filters.registry import KINDS, scales
 from tracklab.metrics import REPORT_WINDOW
 from tracklab.scenarios import (ConstantVelocity, Crossing, MountFrame, Overflight, Sine, Trajectory, TrajectoryError,
                                  read_csv)
@@ -168,20 +168,22 @@ class Experiment:
         d = self.dim
         return np.diag([self.prior["pos_sigma"] ** 2, self.prior["vel_sigma"] ** 2] * d)
 
+    def declared(self, fc: FilterConfig):
+        """A [[filter]] as the tracking world's structure holds it."""
+        from tracklab.worlds.tracking import DeclaredFilter, hashable
+
+        return DeclaredFilter(fc.label, fc.kind, fc.model, hashable(fc.options), tuple(fc.sensors), fc.fusion)
+
     def view(self, fc: FilterConfig):
         """(view function or None, measurement model) of what a filter sees."""
-        names = fc.sensors
-        if fc.options.get("guide", "previous") != "previous":  # error_space: [main, guide]
-            names = tuple(names) + (fc.options["guide"],)
-        return _view(self.sensor, names, fc.fusion)
+        return self.declared(fc).sees(self.sensor)
 
     def structure(self, chunk=None, elementwise=True):
         """What the compiled program depends on: the filters' kinds, models, options and views,
         the report windows and the chunk size (never the run count, nor any number)."""
-        from tracklab.worlds.tracking import DeclaredFilter, TrackingStructure, default_chunk, hashable, windows_of
+        from tracklab.worlds.tracking import TrackingStructure, default_chunk, windows_of
 
-        lanes = tuple(DeclaredFilter(fc.label, fc.kind, fc.model, hashable(fc.options), tuple(fc.sensors), fc.fusion)
-                      for fc in self.filters)
+        lanes = tuple(self.declared(fc) for fc in self.filters)
         chunk = int(chunk or self.chunk or default_chunk(self.scenario, self.sensor))
         return TrackingStructure(lanes, windows_of(self.pred_windows), chunk, elementwise)
 
@@ -218,8 +220,6 @@ class Experiment:
 
     def scaled(self, params, factors: dict):
         """``params`` with every filter's parameters named in ``factors`` multiplied by them."""
-        from tracklab.sweep import scales
-
         return params._replace(filters=[{k: (v * factors[k] if k in factors and scales(fc.kind, p, k) else v)
                                          for k, v in p.items()} for fc, p in zip(self.filters, params.filters)])
 

@@ -62,7 +62,8 @@ def parse_studies(f, tables, section_cls, exp_filters) -> list:
     """Validate the ``[[study]]`` tables (``section_cls``: config's typed table reader)."""
     from tracklab.config import MAX_RUNS
     from tracklab.filters.registry import TUNABLE
-    from tracklab.sweep import parse_grid, scales
+    from tracklab.filters.registry import scales
+    from tracklab.sweep import parse_grid
     from tracklab.tune import LOSSES, tunes
 
     if tables is None:

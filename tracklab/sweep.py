@@ -37,7 +37,7 @@ import jax
 import numpy as np
 
 from tracklab.errors import ConfigError
-from tracklab.filters.registry import KINDS, SCALABLE
+from tracklab.filters.registry import SCALABLE, scales
 from tracklab.montecarlo import runner
 from tracklab.output import atomic_folder
 from tracklab.report import _fmt, md_cell, write_json
@@ -231,11 +231,6 @@ def check_sweep(exp, axes: list[Axis], runs=None, limit=None):
     resolve(exp, axes)
     check(exp.path, memory_bytes(exp, axes, runs), limit, f"a sweep of {grid_points(axes):.3g} grid points",
           "fewer grid points (N in NAME=LO:HI:N), or fewer experiment.steps")
-
-
-def scales(kind: str, params: dict, name) -> bool:
-    """Whether a scale-factor axis ``name`` scales a filter of ``kind`` with ``params``."""
-    return name in params and KINDS[kind].params[name].sweep
 
 
 def _scales(exp, name) -> bool:

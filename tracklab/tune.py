@@ -45,10 +45,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from tracklab.filters.kind import FilterKind, WriteBack
+from tracklab.filters.kind import FilterKind, WriteBack, positive
 from tracklab.filters.registry import KINDS
 from tracklab.montecarlo import runner
-from tracklab.toml_fields import MAX_MAGNITUDE
 from tracklab.worlds import tracking
 
 
@@ -227,11 +226,10 @@ def _closed_loop_objective(exp, chosen, loss) -> Objective:
     params = exp.params()
     lanes = getattr(exp, "tune_lanes", lambda c: list(c))(chosen)
     loss_fn = exp.tune_losses[loss]
-    theta0 = {l: {n: jnp.log(jnp.asarray(v, float)) for n, v in vals.items()}
-              for l, vals in exp.tune_start(chosen).items()}
+    theta0 = {l: positive.encode(vals) for l, vals in exp.tune_start(chosen).items()}
 
     def values(theta):
-        return {l: {n: jnp.exp(u) for n, u in t.items()} for l, t in theta.items()}
+        return {l: positive.decode(t) for l, t in theta.items()}
 
     def total(theta, key, idx, live):
         p = exp.with_tuned(params, values(theta))
@@ -239,11 +237,8 @@ def _closed_loop_objective(exp, chosen, loss) -> Objective:
         return sum(loss_fn(sums[l]) for l in lanes)
 
     def why_not(vals):
-        for l, v in vals.items():
-            for n, x in v.items():
-                if not (np.isfinite(float(x)) and 1e-300 <= float(x) <= MAX_MAGNITUDE):
-                    return f"{l}: {n} leaves [1e-300, {MAX_MAGNITUDE:g}]"
-        return None
+        return next((f"{l}: {n} leaves {positive.bounds}" for l, v in vals.items() for n, x in v.items()
+                     if not positive.contains({n: x})), None)
 
     return Objective(total, theta0, values, chosen, why_not)
 

@@ -262,7 +262,8 @@ class ServoExperiment:
         for case in structure.cases:
             s = {k: v for k, v in sums[case.label].items() if not k.startswith("example")}
             cases[case.label] = {"kind": case.mode, "label": case.label, "estimator": self._case(case.label).estimator,
-                                 "summary": case_summary(s, out.runs, case.estimator not in (None, "perfect"))}
+                                 "summary": case_summary(s, out.runs, case.estimator not in (None, "perfect")),
+                                 "series": {}}
         return {"filters": cases}
 
     # tuning (tracklab.tune): each estimator's q, against the case(s) it feeds
@@ -314,14 +315,9 @@ class ServoExperiment:
         structure = self.structure(chunk)
         out = runner.run(world(structure), self.params(trained), runs, seed, precision=precision or self.precision,
                          progress=progress)
-        cases, examples = {}, {}
-        for case in structure.cases:
-            s = out.sums[case.label]
-            examples[case.label] = {"error": np.asarray(s.pop("example_error")),
-                                    "rate_error": np.asarray(s.pop("example_rate_error"))}
-            summary = case_summary(s, runs, case.estimator not in (None, "perfect"))
-            cases[case.label] = {"kind": case.mode, "label": case.label, "estimator": self._case(case.label).estimator,
-                                 "summary": summary, "series": {}}
+        cases = self.summarise(structure, None, out.sums, out)["filters"]
+        examples = {c.label: {"error": np.asarray(out.sums[c.label]["example_error"]),
+                              "rate_error": np.asarray(out.sums[c.label]["example_rate_error"])} for c in structure.cases}
         n_ticks = self.ticks
         t = (self.frame_dt / self.frame_ticks) * np.arange(n_ticks)
         stride = max(1, n_ticks // 3000)

@@ -96,19 +96,20 @@ class DeclaredFilter:
     def option_dict(self) -> dict:
         return dict(self.options)
 
-    def _names(self):
+    def sees(self, sensor):
+        """(view function or None, measurement model) of what the filter sees of the sensors."""
         names = self.sensors
         guide = self.option_dict.get("guide", "previous")
         if guide != "previous":  # error_space: [main, guide]
             names = tuple(names) + (guide,)
-        return names
+        return view_of(sensor, names, self.fusion)
 
     def view_for(self, sensor):
-        return view_of(sensor, self._names(), self.fusion)[0]
+        return self.sees(sensor)[0]
 
     def realise(self, scenario, sensor, params, extra_var) -> Realised:
         model = MODELS[self.model](scenario.dim, scenario.dt)
-        view, meas = view_of(sensor, self._names(), self.fusion)
+        view, meas = self.sees(sensor)
         flt = build(self.kind, model, meas, params, self.option_dict)
         report = cv(scenario.dim, scenario.dt) if self.kind == "polar_kf" else model
         return Realised(flt, report, view, extra_var)
@@ -403,7 +404,7 @@ def _chunk(structure: TrackingStructure):
         pattern = np.concatenate([np.repeat(s.report_mask(T)[:, None], s.m, axis=1) for s in sensor.sensors],
                                  axis=1)  # (steps, M): which components each sensor reports at each step
         report_masks = np.stack([s.report_mask(T) for s in sensor.sensors], axis=1)  # (steps, sensors)
-        detect_all = not any(s.misses for s in sensor.sensors)
+        detect_all = not sensor.misses
         with_bound = scenario.gaussian  # no PCRLB, no information to gather
         stand_in = _stand_in(sensor)
         views = [f.view_for(stand_in) for f in structure.filters]
