@@ -153,7 +153,7 @@ def cmd_sweep(args) -> int:
     def progress(done, total):
         raise_if_interrupted()
         if sys.stderr.isatty() or done == total:
-            print(f"\r{exp.name} sweep: {done}/{total} calls", end="\n" if done == total else "", file=sys.stderr, flush=True)
+            print(f"\r{exp.name} sweep: {done}/{total} runs (all grid points)", end="\n" if done == total else "", file=sys.stderr, flush=True)
 
     doc = sweep(exp, axes, runs=args.runs, progress=progress, max_memory=args.max_memory)  # checks grid and memory first
     n = grid_points(axes)
