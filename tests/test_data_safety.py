@@ -359,7 +359,7 @@ def test_a_signal_while_writing_leaves_old_or_complete_new_results(tmp_path, sig
 
 
 def test_airborne_tracker_that_lost_lock_everywhere_shows_missing(tmp_path):
-    from tracklab.airborne.experiment import airborne_tables, write_airborne_results
+    from tracklab.experiments.airborne import airborne_tables, write_airborne_results
 
     p = tmp_path / "air.toml"
     p.write_text(AIRBORNE.replace("duration = 4.0", "duration = 25.0") + '\n[[tracker]]\nkind = "classical"\n')
@@ -388,7 +388,7 @@ def test_airborne_tracker_that_lost_lock_everywhere_shows_missing(tmp_path):
 
 
 def test_servo_case_statistics_leave_diverged_runs_out():
-    from tracklab.servo.experiment import case_summary
+    from tracklab.experiments.servo import case_summary
     from tracklab.servo.world import case_sums
 
     mx = np.array([0.1, 0.2, np.inf, 1e20, 0.05])  # deg: two healthy runs, one overflowed, one lost the target
@@ -552,7 +552,7 @@ def test_heatmap_cells_are_centred_on_their_grid_values():
 
 
 def test_a_label_cannot_break_a_markdown_table(tmp_path):
-    from tracklab.airborne.experiment import airborne_tables
+    from tracklab.experiments.airborne import airborne_tables
     from tracklab.report import markdown_table
 
     doc = {"filters": {"EKF | x": {"kind": "ekf", "summary": {"rmse_pos": 1.0, "runs": 3}}}}

@@ -55,7 +55,7 @@ def _at_most(path, steps, tmp, labels=None):
     fast), with only the filters ``labels`` (all if None)."""
     import tomllib
 
-    from tracklab.config import dump_toml
+    from tracklab.config.writing import dump_toml
 
     raw = tomllib.loads(path.read_text())
     if raw["experiment"]["steps"] <= steps and labels is None:

@@ -106,7 +106,7 @@ def test_named_windows_survive_the_toml_writer():
     """Tuned files are written with dump_toml: window names with spaces must stay valid TOML keys."""
     import tomllib
 
-    from tracklab.config import dump_toml
+    from tracklab.config.writing import dump_toml
 
     raw = tomllib.loads(textwrap.dedent(EXPERIMENT))
     assert tomllib.loads(dump_toml(raw)) == raw

@@ -9,7 +9,8 @@ import pytest
 
 from tracklab.config import load_experiment
 from tracklab.metrics import statistics
-from tracklab.sweep import parse_grid, sweep
+from tracklab.config.paths import parse_grid
+from tracklab.sweep import sweep
 
 EXP = """
 [experiment]

@@ -65,7 +65,7 @@ def cmd_run(args) -> int:
 
 
 def cmd_list(args) -> int:
-    from tracklab.airborne.experiment import TRACKERS
+    from tracklab.experiments.airborne import TRACKERS
     from tracklab.filters.registry import KINDS
     from tracklab.scenarios import SCENARIO_KINDS
     from tracklab.sensors import SENSOR_KINDS
@@ -102,7 +102,7 @@ def cmd_tune(args) -> int:
     from tracklab.config import load_experiment
     from tracklab.filters.registry import TUNABLE, declarations
     from tracklab.studies import check_tune, run_tune
-    from tracklab.tune import LOSSES
+    from tracklab.worlds.tracking import LOSSES
 
     exp = load_experiment(args.experiment)
     names = [n.strip() for n in args.params.split(",") if n.strip()]
@@ -136,7 +136,8 @@ def cmd_tune(args) -> int:
 def cmd_sweep(args) -> int:
     from tracklab.config import MAX_RUNS, load_experiment
     from tracklab.output import check_results_folder
-    from tracklab.sweep import grid_points, parse_grid, sweep, write_sweep
+    from tracklab.config.paths import parse_grid
+    from tracklab.sweep import grid_points, sweep, write_sweep
 
     exp = load_experiment(args.experiment)
     axes = []

@@ -132,11 +132,12 @@ def update_readme(readme: Path, table: str):
 
 def _check_outputs(exps, jobs, experiments_dir: Path, results_dir: Path, quick, max_memory):
     """Every output of every job and study, and every job's memory, checked before anything runs."""
-    from tracklab.config import Experiment
+    from tracklab.experiments.tracking import Experiment
     from tracklab.errors import ConfigError
     from tracklab.output import check_results_folder, check_results_parent
     from tracklab.studies import check_tune
-    from tracklab.sweep import check_sweep, parse_grid
+    from tracklab.config.paths import parse_grid
+    from tracklab.sweep import check_sweep
 
     check_results_parent(results_dir, experiments_dir)
     for exp, runs, out in jobs:

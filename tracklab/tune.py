@@ -46,25 +46,11 @@ import numpy as np
 import optax
 
 from tracklab.filters.kind import FilterKind, WriteBack, positive
-from tracklab.filters.registry import KINDS
+from tracklab.filters.registry import KINDS, tunes
 from tracklab.montecarlo import runner
+from tracklab.sensors import SENSOR_SIGMAS
 from tracklab.worlds import tracking
-
-
-def _window_mean(x, window):
-    a, b = window
-    return jnp.mean(x[a - 1:b])
-
-
-def _safe_div(a, b):
-    return a / jnp.maximum(b, 1.0)
-
-
-LOSSES: dict[str, Callable] = {
-    "mse_pos": lambda s, w: _window_mean(_safe_div(jnp.sum(s["sumsq_pos"], -1), s["count"]), w),
-    "pred_mse": lambda s, w: _window_mean(_safe_div(jnp.sum(s["sumsq_pred"], axis=-1), s["count"]), w),
-    "nll": lambda s, w: _window_mean(0.5 * _safe_div(s["sum_nis"] + s["sum_logdet_s"], s["count_nis"]), w),
-}
+from tracklab.worlds.tracking import LOSSES
 
 
 def _constrained_together(kind: FilterKind, params: dict, names):
@@ -110,8 +96,6 @@ def acceptable(kind: FilterKind, params: dict, names) -> str | None:
 
 
 def _write_back(exp, fc) -> WriteBack:
-    from tracklab.config import SENSOR_SIGMAS
-
     _, meas = exp.view(fc)
     return WriteBack(fc.model, meas.kind, SENSOR_SIGMAS.get(meas.kind, ()))
 
@@ -147,11 +131,6 @@ def memory_bytes(exp, runs_per_step, eval_runs=None) -> float:
     n_eval = eval_runs or min(exp.runs, 2000)
     width = 2 * exp.dim + exp.sensor.m
     return runs_per_step * exp.steps * state * 8.0 + min(n_eval, 1000) * exp.steps * width * 4.0
-
-
-def tunes(kind: str, params: dict, name) -> bool:
-    """Whether a filter of ``kind`` with ``params`` has the parameter ``name``, tunable."""
-    return name in params and KINDS[kind].params[name].tune
 
 
 def selection(exp, names, labels=None) -> dict[str, tuple[str, ...]]:

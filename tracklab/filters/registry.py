@@ -40,3 +40,8 @@ def scales(kind: str, params: dict, name) -> bool:
 
 TUNABLE = _names(lambda p: p.tune)  # what `tracklab tune --params` may name
 SCALABLE = _names(lambda p: p.sweep)  # what `tracklab sweep --grid` may scale
+
+
+def tunes(kind: str, params: dict, name) -> bool:
+    """Whether a filter of ``kind`` with ``params`` has the parameter ``name``, tunable."""
+    return name in params and KINDS[kind].params[name].tune

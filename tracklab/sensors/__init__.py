@@ -3,6 +3,7 @@
 from tracklab.sensors.conversion import CONVERSIONS
 from tracklab.sensors.geometry import (
     SENSOR_KINDS,
+    SENSOR_SIGMAS,
     Sensor,
     SensorSuite,
     angles_h,
@@ -13,6 +14,6 @@ from tracklab.sensors.geometry import (
 )
 
 __all__ = [
-    "CONVERSIONS", "SENSOR_KINDS", "Sensor", "SensorSuite", "angles_h", "cartesian_h", "epochs", "polar_h",
+    "CONVERSIONS", "SENSOR_KINDS", "SENSOR_SIGMAS", "Sensor", "SensorSuite", "angles_h", "cartesian_h", "epochs", "polar_h",
     "spherical_h",
 ]

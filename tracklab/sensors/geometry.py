@@ -240,3 +240,10 @@ SENSOR_KINDS = {
     "cartesian": "1-/2-/3-D position: sigma (m), one value or one per axis",
     "mount": "alt-azimuth mount: azimuth and elevation (deg), sigma_az, sigma_el (deg); 3-D truth",
 }
+SENSOR_SIGMAS = {  # each kind's noise fields, in the order of its measurement vector
+    "polar": ("sigma_r", "sigma_angle"),
+    "spherical": ("sigma_r", "sigma_az", "sigma_el"),
+    "angles": ("sigma_az", "sigma_el"),
+    "cartesian": ("sigma",),
+    "mount": ("sigma_az", "sigma_el"),
+}

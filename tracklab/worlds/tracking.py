@@ -528,6 +528,23 @@ def _chunk(structure: TrackingStructure):
     return local
 
 
+def _window_mean(x, window):
+    a, b = window
+    return jnp.mean(x[a - 1:b])
+
+
+def _safe_div(a, b):
+    return a / jnp.maximum(b, 1.0)
+
+
+# what tuning may minimise, from one chunk's sums, time-averaged over the report window ``w``
+LOSSES: dict[str, Callable] = {
+    "mse_pos": lambda s, w: _window_mean(_safe_div(jnp.sum(s["sumsq_pos"], -1), s["count"]), w),
+    "pred_mse": lambda s, w: _window_mean(_safe_div(jnp.sum(s["sumsq_pred"], axis=-1), s["count"]), w),
+    "nll": lambda s, w: _window_mean(0.5 * _safe_div(s["sum_nis"] + s["sum_logdet_s"], s["count_nis"]), w),
+}
+
+
 @functools.lru_cache(maxsize=64)
 def world(structure: TrackingStructure) -> runner.World:
     """The tracking world of a structure (one per structure: its compiled programs are shared)."""

@@ -1,0 +1,65 @@
+"""Imports go downward only: each part of the package uses the parts below it, never one above.
+
+Bottom to top: the building blocks (filters, models, sensors, scenarios, the runner, …); the
+worlds; the report; the validated experiments; the experiment-file parsers (config); the
+studies (tune, sweep); the command line; the public API. A circle, or a world importing its
+parser, fails here with the module and the import that goes up.
+"""
+
+import ast
+from pathlib import Path
+
+import tracklab
+
+LAYERS = [
+    {"errors", "pytree", "linalg", "random", "toml_fields", "memory", "output", "models", "sensors", "scenarios",
+     "metrics", "montecarlo", "filters", "filtering"},
+    {"worlds", "airborne", "servo"},
+    {"report"},
+    {"experiments"},
+    {"config"},
+    {"tune", "sweep", "studies"},
+    {"reproduce", "cli"},
+    {"__init__"},
+]
+RANK = {part: i for i, layer in enumerate(LAYERS) for part in layer}
+ROOT = Path(tracklab.__file__).parent
+
+
+def _part(module: str) -> str:
+    """The top-level part of the package a dotted module name belongs to."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else "__init__"
+
+
+def _imports(tree):
+    """Every tracklab module a file imports, at any depth (lazy imports inside functions too)."""
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            yield from (a.name for a in node.names if a.name.split(".")[0] == "tracklab")
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").split(".")[0] == "tracklab":
+            if node.module == "tracklab":  # from tracklab import random -> tracklab.random
+                yield from (f"tracklab.{a.name}" for a in node.names if a.name != "__version__")
+            else:
+                yield node.module
+
+
+def test_every_part_of_the_package_has_a_layer():
+    parts = {p.relative_to(ROOT).parts[0].removesuffix(".py") for p in ROOT.rglob("*.py")}
+    assert parts <= set(RANK), sorted(parts - set(RANK))
+
+
+def test_imports_go_downward_only():
+    upward = []
+    for f in sorted(ROOT.rglob("*.py")):
+        me = f.relative_to(ROOT).parts[0].removesuffix(".py")
+        for module in _imports(ast.parse(f.read_text())):
+            target = _part(module)
+            if target in RANK and RANK[target] > RANK[me]:
+                upward.append(f"{f.relative_to(ROOT)} imports {module}")
+    assert not upward, "\n".join(upward)
+
+
+def test_the_layer_check_catches_an_upward_import():
+    tree = ast.parse("def f():\n    from tracklab.config import load_experiment\n")
+    assert RANK[_part(next(_imports(tree)))] > RANK["worlds"]

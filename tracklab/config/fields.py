@@ -1,0 +1,145 @@
+"""What every experiment file shares: typed access to its TOML tables, the [experiment]
+header, the file's sections, and the limits on its sizes.
+
+Every check raises ``ConfigError`` whose message is one line: file, field, value, what is
+allowed.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import tomllib
+from pathlib import Path
+
+from tracklab.errors import ConfigError
+from tracklab.toml_fields import MAX_MAGNITUDE
+
+MAX_RUNS = 100_000_000
+MAX_STEPS = 1_000_000
+MAX_RUN_STEPS = 10**12
+NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,99}")
+WINDOW_NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9 _.+-]{0,39}")
+
+
+class Section:
+    """Typed access to one TOML table that remembers which keys were read."""
+
+    def __init__(self, file, name, table):
+        self.file, self.name, self.table = file, name, table
+        if not isinstance(table, dict):
+            raise ConfigError(file, name, table, "must be a TOML table")
+        self.used: set[str] = set()
+
+    def _err(self, key, value, allowed):
+        return ConfigError(self.file, f"{self.name}.{key}", value, allowed)
+
+    def get(self, key, default=None):
+        self.used.add(key)
+        return self.table.get(key, default)
+
+    def has(self, key):
+        return key in self.table
+
+    def number(self, key, default=None, *, positive=False, nonneg=False, lo=None, hi=None, required=False):
+        self.used.add(key)
+        if key not in self.table:
+            if required or default is None:
+                if required:
+                    raise self._err(key, None, "is required (a number)")
+                return None
+            return float(default)
+        v = self.table[key]
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise self._err(key, v, "must be a number")
+        v = float(v)
+        if not math.isfinite(v) or abs(v) > MAX_MAGNITUDE:
+            raise self._err(key, v, f"must be a finite number of magnitude <= {MAX_MAGNITUDE:g}")
+        if positive and v <= 0:
+            raise self._err(key, v, "must be a number > 0")
+        if nonneg and v < 0:
+            raise self._err(key, v, "must be a number >= 0")
+        if lo is not None and v < lo or hi is not None and v > hi:
+            raise self._err(key, v, f"must be in [{lo}, {hi}]")
+        return v
+
+    def integer(self, key, default=None, *, lo=None, hi=None, required=False):
+        self.used.add(key)
+        if key not in self.table:
+            if required:
+                raise self._err(key, None, "is required (an integer)")
+            return default
+        v = self.table[key]
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise self._err(key, v, "must be an integer")
+        if (lo is not None and v < lo) or (hi is not None and v > hi):
+            raise self._err(key, v, f"must be an integer in [{lo}, {hi}]")
+        return v
+
+    def string(self, key, default=None, *, choices=None, required=False):
+        self.used.add(key)
+        if key not in self.table:
+            if required:
+                allowed = f"one of {', '.join(choices)}" if choices else "a string"
+                raise self._err(key, None, f"is required ({allowed})")
+            return default
+        v = self.table[key]
+        if not isinstance(v, str):
+            raise self._err(key, v, "must be a string")
+        if choices is not None and v not in choices:
+            raise self._err(key, v, f"must be one of {', '.join(choices)}")
+        return v
+
+    def label(self, key, default):
+        """A label tables show: non-blank, one line, at most 100 characters."""
+        v = self.string(key, default)
+        if not v.strip() or len(v) > 100 or any(ord(c) < 32 or ord(c) == 127 for c in v):
+            raise self._err(key, v, "must not be empty or only spaces (1-100 characters on one line)")
+        return v
+
+    def check_unknown(self, extra=()):
+        unknown = sorted(set(self.table) - self.used - set(extra))
+        if unknown:
+            k = unknown[0]
+            allowed = ", ".join(sorted(self.used | set(extra)))
+            raise self._err(k, self.table[k], f"unknown field (allowed here: {allowed})")
+
+
+def read_toml(path: Path):
+    if not path.is_file():
+        raise ConfigError(path, "file", str(path), "experiment file does not exist")
+    try:
+        return tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(path, "file", "", f"is not valid TOML ({e})") from None
+    except RecursionError:
+        raise ConfigError(path, "file", "", "is nested too deeply (arrays or tables within each other)") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(path, "file", "", f"cannot be read ({e.__class__.__name__})") from None
+
+
+def check_sections(f, raw, required, allowed, kind=None):
+    """The file's top-level tables: each required one present, none outside ``allowed``.
+
+    ``kind`` ("a servo experiment", …) names the kind of file in the messages.
+    """
+    where = f" in {kind}" if kind else ""
+    for sec in required:
+        if sec not in raw:
+            raise ConfigError(f, f"[{sec}]", None, f"section is required{where}")
+    unknown = sorted(set(raw) - set(allowed))
+    if unknown:
+        raise ConfigError(f, f"[{unknown[0]}]", "...", f"unknown section{where} (allowed: {', '.join(allowed)})")
+
+
+def experiment_header(f, raw):
+    """[experiment]'s name, runs, seed, precision (and description) -> (name, runs, seed, precision, section)."""
+    ex = Section(f, "experiment", raw["experiment"])
+    name = ex.string("name", required=True)
+    if not NAME_RE.fullmatch(name):
+        raise ConfigError(f, "experiment.name", name, "must be 1-100 characters of letters, digits, '_', '.', '-'")
+    runs = ex.integer("runs", required=True, lo=1, hi=MAX_RUNS)
+    seed = ex.integer("seed", 0, lo=0, hi=2**32 - 1)
+    precision = ex.string("precision", "float64", choices=("float64", "float32"))
+    ex.string("description")
+    return name, runs, seed, precision, ex

@@ -1,0 +1,304 @@
+"""Reading open-loop tracking experiment files: ``[experiment]``, ``[scenario]``, ``[sensor]``
+(or ``[[sensor]]``), ``[prior]``, ``[[filter]]``, ``[report]`` and ``[[study]]``.
+
+Relative paths are resolved against the experiment file's folder.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from tracklab.config.fields import (MAX_RUN_STEPS, MAX_RUNS, MAX_STEPS, NAME_RE, WINDOW_NAME_RE, Section,
+                                    check_sections, experiment_header)
+from tracklab.config.studies import parse_studies
+from tracklab.errors import ConfigError
+from tracklab.experiments.tracking import Experiment, FilterConfig
+from tracklab.filters.fusion import view_of as _view
+from tracklab.filters.kind import Entry
+from tracklab.filters.registry import KINDS
+from tracklab.metrics import REPORT_WINDOW
+from tracklab.scenarios import (ConstantVelocity, Crossing, MountFrame, Overflight, Sine, Trajectory, TrajectoryError,
+                                 read_csv)
+from tracklab.sensors import SENSOR_KINDS, SENSOR_SIGMAS, Sensor, SensorSuite
+from tracklab.toml_fields import MAX_MAGNITUDE, sigma_list as _sigma_list
+
+SENSOR_DIM = {"polar": 2, "spherical": 3, "angles": 3, "mount": 3}  # dimension of the truth they observe
+
+
+def _multiple_of(value, dt, zero=True):
+    """Whether ``value`` is a whole multiple of ``dt`` (0 allowed when ``zero``)."""
+    n = value / dt
+    return abs(n - round(n)) < 1e-6 and (round(n) >= 1 or zero and value == 0)
+
+
+def _sensor_tables(f, raw):
+    tables = raw["sensor"]
+    if isinstance(tables, dict):
+        return [("sensor", tables)]
+    if isinstance(tables, list) and tables and all(isinstance(t, dict) for t in tables):
+        return [(f"sensor[{i}]", t) for i, t in enumerate(tables, start=1)]
+    raise ConfigError(f, "sensor", tables, "must be a [sensor] table or one or more [[sensor]] tables")
+
+
+def _parse_sensors(f, raw):
+    """First pass: kinds and names (the scenario's dimension may depend on them)."""
+    out = []
+    for where, table in _sensor_tables(f, raw):
+        sn = Section(f, where, table)
+        kind = sn.string("kind", required=True, choices=tuple(SENSOR_KINDS))
+        out.append((where, sn, kind))
+    return out
+
+
+def _build_sensors(f, parsed, dim, dt, steps):
+    sensors, names = [], set()
+    for where, sn, kind in parsed:
+        name = sn.string("name", kind)
+        if not NAME_RE.fullmatch(name):
+            raise ConfigError(f, f"{where}.name", name, "must be 1-100 characters of letters, digits, '_', '.', '-'")
+        if name in names:
+            raise ConfigError(f, f"{where}.name", name, "must be unique among the sensors")
+        names.add(name)
+        if SENSOR_DIM.get(kind, dim) != dim:
+            hint = " (set scenario.altitude for a 3-D crossing)" if SENSOR_DIM[kind] == 3 else " (remove scenario.altitude, or use a 3-D sensor)"
+            raise ConfigError(f, f"{where}.kind", kind, f"observes {SENSOR_DIM[kind]}-D positions but the scenario is {dim}-D{hint}")
+        p_detect = sn.number("p_detect", 1.0)
+        if not 0.0 < p_detect <= 1.0:
+            raise ConfigError(f, f"{where}.p_detect", p_detect, "must be a probability in (0, 1]")
+        period = sn.number("period", dt, positive=True)
+        if not _multiple_of(period, dt, zero=False):
+            raise ConfigError(f, f"{where}.period", period, f"must be a whole multiple (1, 2, …) of experiment.dt = {dt}")
+        offset = sn.number("offset", 0.0, nonneg=True)
+        if not _multiple_of(offset, dt):
+            raise ConfigError(f, f"{where}.offset", offset, f"must be a whole multiple (0, 1, …) of experiment.dt = {dt}")
+        if kind == "cartesian":
+            sigma = _sigma_list(f, f"{where}.sigma", sn.get("sigma"), dim)
+        else:
+            sigma = tuple(sn.number(k, required=True, positive=True) for k in SENSOR_SIGMAS[kind])
+        sn.check_unknown()
+        frame_dim = 2 if kind == "mount" else dim  # a mount observes its two angles
+        sensor = Sensor(kind, frame_dim, sigma, p_detect, name=name, dt=dt, period=period, offset=offset)
+        if not sensor.report_mask(steps).any():
+            raise ConfigError(f, f"{where}.offset", offset, f"the sensor reports at no step: the run ends at {steps * dt:g} s")
+        sensors.append(sensor)
+    return SensorSuite(tuple(sensors))
+
+
+def parse_tracking(path: Path, raw: dict) -> Experiment:
+    """Validate an open-loop experiment file's contents ``raw`` read from ``path``."""
+    f = path = Path(path)
+    check_sections(f, raw, ("experiment", "scenario", "sensor"),
+                   ("experiment", "scenario", "sensor", "filter", "prior", "report", "study"))
+    name, runs, seed, precision, ex = experiment_header(f, raw)
+    dt = ex.number("dt", required=True, positive=True)
+    if not 1e-6 <= dt <= 1e6:
+        raise ConfigError(f, "experiment.dt", dt, "must be a period in [1e-06, 1e+06] s")
+    steps = ex.integer("steps", required=True, lo=1, hi=MAX_STEPS)
+    if runs * steps > MAX_RUN_STEPS:
+        raise ConfigError(f, "experiment.runs", runs, f"runs x steps must be <= {MAX_RUN_STEPS:.0e}")
+    chunk = ex.integer("chunk", None, lo=1, hi=1_000_000)
+    also = ex.get("also_runs", [])  # extra run counts `tracklab reproduce` writes, e.g. a paper's own
+    if not isinstance(also, list) or any(isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= MAX_RUNS for v in also):
+        raise ConfigError(f, "experiment.also_runs", also, f"must be a list of run counts in [1, {MAX_RUNS}]")
+    ex.check_unknown()
+
+    parsed_sensors = _parse_sensors(f, raw)
+    fixed_dims = {SENSOR_DIM[k] for _, _, k in parsed_sensors if k in SENSOR_DIM}
+    sensor_dim = fixed_dims.pop() if len(fixed_dims) == 1 else None
+    if len(fixed_dims) > 0:
+        raise ConfigError(f, "[[sensor]]", "...", "all sensors must observe positions of the same dimension")
+
+    sc = Section(f, "scenario", raw["scenario"])
+    kind = sc.string("kind", required=True, choices=("crossing", "constant_velocity", "trajectory", "overflight", "sine"))
+    if kind == "sine":
+        scenario = Sine(dt=dt, steps=steps, amplitude=sc.number("amplitude", 83.33, positive=True),
+                        omega=sc.number("omega", 0.6, positive=True), phase=sc.number("phase", 0.0))
+    elif kind == "overflight":
+        max_el = sc.number("max_elevation", 74.947)
+        if not 0.0 < max_el < 90.0:
+            raise ConfigError(f, "scenario.max_elevation", max_el, "must be an elevation in (0, 90) degrees")
+        scenario = Overflight(
+            dt=dt,
+            steps=steps,
+            altitude=sc.number("altitude", 8000.0, positive=True),
+            speed=sc.number("speed", 250.0, positive=True),
+            max_elevation=max_el,
+            t_closest=sc.number("t_closest", 75.0),
+            heading=sc.number("heading", 90.0),
+        )
+    elif kind == "crossing":
+        scenario = Crossing(
+            dt=dt,
+            steps=steps,
+            speed=sc.number("speed", 400.0),
+            offset=sc.number("offset", 20000.0),
+            start_x=sc.number("start_x", -20000.0),
+            accel_sigma=sc.number("accel_sigma", 1.0, nonneg=True),
+            altitude=sc.number("altitude", None),
+        )
+    elif kind == "constant_velocity":
+        init = sc.get("initial")
+        if (
+            not isinstance(init, list)
+            or len(init) not in (2, 4, 6)
+            or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or abs(v) > MAX_MAGNITUDE for v in init)
+        ):
+            raise ConfigError(f, "scenario.initial", init, "must be 2, 4 or 6 finite numbers [x, vx(, y, vy(, z, vz))]")
+        scenario = ConstantVelocity(dt=dt, steps=steps, initial=tuple(float(v) for v in init),
+                                    accel_sigma=sc.number("accel_sigma", 0.0, nonneg=True))
+    else:
+        p = sc.string("path", required=True)
+        try:
+            tpath = (path.parent / p).resolve()
+            read_csv(tpath)
+        except (RuntimeError, OSError) as e:  # a symbolic-link loop, a name too long, …
+            raise ConfigError(f, "scenario.path", p, f"trajectory file cannot be opened ({e.__class__.__name__})") from None
+        except TrajectoryError as e:
+            raise ConfigError(f, "scenario.path", p, f"trajectory file {e}") from None
+        dims = sc.integer("dims", sensor_dim or 3, lo=2, hi=3)
+        if sensor_dim is not None and dims != sensor_dim:
+            raise ConfigError(f, "scenario.dims", dims, f"must be {sensor_dim} for the sensors given")
+        start = sc.number("start", 0.0, nonneg=True)
+        scenario = Trajectory(path=str(tpath), dt=dt, steps=steps, dim=dims, start=start)
+        avail = scenario.max_steps()
+        if steps > avail:
+            raise ConfigError(f, "experiment.steps", steps, f"the trajectory from start = {start} s holds at most {avail} steps of {dt} s")
+    sc.check_unknown()
+    dim = scenario.dim
+    suite = _build_sensors(f, parsed_sensors, dim, dt, steps)
+    mounts = [s.kind == "mount" for s in suite.sensors]
+    if any(mounts):  # angle tracking: the truth in the mount frame, filters on [az, el] (deg)
+        if not all(mounts):
+            raise ConfigError(f, "[[sensor]]", "mount", "a mount cannot share an experiment with sensors of other kinds")
+        scenario = MountFrame(scenario)
+        dim = scenario.dim
+
+    pr = Section(f, "prior", raw.get("prior", {}))
+    angular = any(mounts)  # in the mount frame the prior is in deg, deg/s, deg/s²
+    prior = {
+        "pos_sigma": pr.number("pos_sigma", 0.1 if angular else 100.0, positive=True),
+        "vel_sigma": pr.number("vel_sigma", 1.0 if angular else 10.0, positive=True),
+        "acc_sigma": pr.number("acc_sigma", 1.0, positive=True),
+    }
+    pr.check_unknown()
+
+    flist = raw.get("filter")
+    if not isinstance(flist, list) or not flist:
+        raise ConfigError(f, "[[filter]]", flist, "at least one [[filter]] table is required")
+    filters, labels = [], set()
+    default_q = getattr(getattr(scenario, "scenario", scenario), "accel_sigma", 1.0)
+    for i, table in enumerate(flist, start=1):
+        fc = _parse_filter(f, i, table, suite, dim, dt, default_q)
+        if fc.label in labels:
+            raise ConfigError(f, f"filter[{i}].label", fc.label, "must be unique among the filters")
+        labels.add(fc.label)
+        filters.append(fc)
+
+    rp = Section(f, "report", raw.get("report", {}))
+    w = rp.get("window", [1, steps])
+    if (
+        not isinstance(w, list)
+        or len(w) != 2
+        or any(isinstance(v, bool) or not isinstance(v, int) for v in w)
+        or not (1 <= w[0] <= w[1] <= steps)
+    ):
+        raise ConfigError(f, "report.window", w, f"must be [first, last] steps with 1 <= first <= last <= {steps}")
+    pred_windows = _pred_windows(f, rp.get("windows", {}), (w[0], w[1]), steps, dt)
+    rp.check_unknown()
+    studies = parse_studies(f, raw.get("study"), filters)
+
+    return Experiment(
+        path=path, name=name, runs=runs, seed=seed, dt=dt, steps=steps, chunk=chunk, scenario=scenario,
+        sensor=suite, filters=filters, prior=prior, window=(w[0], w[1]), raw=raw, also_runs=tuple(also), precision=precision,
+        pred_windows=pred_windows, studies=studies,
+    )
+
+
+def _pred_windows(f, table, window, steps, dt):
+    """[report.windows]: name = [t0, t1] (s, inclusive) or "rest" -> (steps,) step masks.
+
+    "rest" is the report window's steps outside every other named window. The
+    report window itself is always included, under ``REPORT_WINDOW``.
+    """
+    k = np.arange(1, steps + 1)
+    report = (k >= window[0]) & (k <= window[1])
+    if not isinstance(table, dict):
+        raise ConfigError(f, "report.windows", table, 'must be a table: name = [t0, t1] (seconds) or "rest"')
+    out, rest = {}, []
+    t = dt * k
+    for name, v in table.items():
+        field_name = f"report.windows.{name}"
+        if not WINDOW_NAME_RE.fullmatch(name) or name == REPORT_WINDOW:
+            raise ConfigError(f, field_name, name, f"window names are 1-40 letters, digits, spaces, '_.+-' (not {REPORT_WINDOW!r})")
+        if v == "rest":
+            rest.append(name)
+            continue
+        if (
+            not isinstance(v, list) or len(v) != 2
+            or any(isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) for x in v)
+            or not v[0] <= v[1]
+        ):
+            raise ConfigError(f, field_name, v, 'must be [t0, t1] in seconds with t0 <= t1, or "rest"')
+        mask = (t >= v[0] - 1e-9 * dt) & (t <= v[1] + 1e-9 * dt)
+        if not mask.any():
+            raise ConfigError(f, field_name, v, f"holds no step: steps are at t = k*{dt} s, k = 1..{steps}")
+        out[name] = mask
+    if len(rest) > 1:
+        raise ConfigError(f, f"report.windows.{rest[1]}", "rest", 'only one window can be "rest"')
+    if rest:
+        mask = report & ~np.any([m for m in out.values()] or [np.zeros(steps, bool)], axis=0)
+        if not mask.any():
+            raise ConfigError(f, f"report.windows.{rest[0]}", "rest", "holds no step of the report window")
+        out[rest[0]] = mask
+    return {REPORT_WINDOW: report} | out
+
+
+def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q) -> FilterConfig:
+    """One [[filter]] table: its kind, label and what it sees (the sensors, a guide, a fusion), checked
+    against the sensor kinds the kind accepts; then the kind's own fields (its declaration's ``read``)."""
+    fs = Section(f, f"filter[{i}]", table)
+    kind = KINDS[fs.string("kind", required=True, choices=tuple(KINDS))]
+    label = fs.label("label", kind.name)
+
+    # what the filter sees
+    all_names = tuple(s.name for s in suite.sensors)
+    guide = fs.string("guide", "previous") if kind.guided else "previous"
+    if guide != "previous" and guide not in all_names:
+        raise ConfigError(f, f"filter[{i}].guide", guide, f"must be \"previous\" or a sensor name from: {', '.join(all_names)}")
+    default_names = [n for n in all_names if n != guide]
+    names = fs.get("sensors", default_names)
+    if not isinstance(names, list) or not names or any(not isinstance(n, str) or n not in all_names for n in names):
+        raise ConfigError(f, f"filter[{i}].sensors", names, f"must be a list of sensor names from: {', '.join(all_names)}")
+    names = tuple(dict.fromkeys(names))
+    fusion = fs.string("fusion", None, choices=("interpolate", "none"))
+    if fusion is not None:
+        kinds = sorted(s.kind for s in suite.subset(names).sensors)
+        if kinds != ["angles", "spherical"]:
+            raise ConfigError(f, f"filter[{i}].fusion", fusion, "needs exactly one 'spherical' (laser) and one 'angles' (infrared) sensor among filter.sensors")
+        ir = next(s for s in suite.subset(names).sensors if s.kind == "angles")
+        if ir.p_detect < 1.0:
+            raise ConfigError(f, f"filter[{i}].fusion", fusion, "registration needs every infrared report: set its p_detect = 1")
+    _, meas = _view(suite, names, fusion)
+    mkind = meas.kind
+    guide_sensor = None
+    if kind.guided:
+        if len(names) != 1 or guide in names:
+            raise ConfigError(f, f"filter[{i}].sensors", list(names), f"{kind.name} observes one sensor (its guide is set by 'guide')")
+        if guide != "previous":
+            guide_sensor = suite.subset((guide,)).sensors[0]
+            if guide_sensor.kind != mkind or guide_sensor.m != meas.m:
+                raise ConfigError(f, f"filter[{i}].guide", guide, f"the guide sensor must be of the observed sensor's kind ({mkind})")
+    if mkind not in kind.accepts:
+        seen = "several sensors" if mkind == "suite" else f"a '{mkind}' sensor"
+        raise ConfigError(f, f"filter[{i}].kind", kind.name, f"needs a sensor of kind {' or '.join(kind.accepts)}, but sees {seen}")
+
+    entry = Entry(fs, kind, meas, dim=dim, dt=dt, accel_sigma=default_q, sigma_fields=SENSOR_SIGMAS.get(mkind, ()),
+                  guide=guide_sensor)
+    model, params, options = kind.read(entry)
+    if kind.guided:
+        options = {"guide": guide, **options}
+    fs.check_unknown()
+    return FilterConfig(label, kind.name, model, params, options, names if names != all_names else (), fusion)

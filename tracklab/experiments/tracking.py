@@ -1,0 +1,158 @@
+"""An open-loop tracking experiment, validated: its filters, scenario, sensors and prior as
+the tracking world's structure and numbers, its Monte-Carlo run (through the runner), its
+statistics and its results folder.
+
+``tracklab.config.tracking`` reads one from a file with ``[scenario]``, ``[sensor]`` and
+``[[filter]]`` tables.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tracklab.filters.registry import scales
+from tracklab.sensors import SensorSuite
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    label: str
+    kind: str
+    model: str
+    params: dict  # name -> float or tuple (the filter's parameter pytree, as numbers)
+    options: dict = field(default_factory=dict)
+    sensors: tuple[str, ...] = ()  # which sensors the filter sees (all when empty)
+    fusion: str | None = None  # "interpolate" | "none": laser + infrared fusion view
+
+
+@dataclass
+class Experiment:
+    """A validated experiment: everything ``tracklab run`` needs."""
+
+    path: Path
+    name: str
+    runs: int
+    seed: int
+    dt: float
+    steps: int
+    chunk: int | None
+    scenario: Any
+    sensor: SensorSuite
+    filters: list[FilterConfig]
+    prior: dict[str, float]
+    window: tuple[int, int]
+    raw: dict
+    also_runs: tuple[int, ...] = ()
+    precision: str = "float64"
+    pred_windows: dict = field(default_factory=dict)  # name -> (steps,) bool mask, report window included
+    studies: list = field(default_factory=list)  # [[study]]: tuning and sweeps `tracklab reproduce` rebuilds
+
+    @property
+    def dim(self) -> int:
+        return self.scenario.dim
+
+    def prior_covariance(self) -> np.ndarray:
+        d = self.dim
+        return np.diag([self.prior["pos_sigma"] ** 2, self.prior["vel_sigma"] ** 2] * d)
+
+    def declared(self, fc: FilterConfig):
+        """A [[filter]] as the tracking world's structure holds it."""
+        from tracklab.worlds.tracking import DeclaredFilter, hashable
+
+        return DeclaredFilter(fc.label, fc.kind, fc.model, hashable(fc.options), tuple(fc.sensors), fc.fusion)
+
+    def view(self, fc: FilterConfig):
+        """(view function or None, measurement model) of what a filter sees."""
+        return self.declared(fc).sees(self.sensor)
+
+    def structure(self, chunk=None, elementwise=True):
+        """What the compiled program depends on: the filters' kinds, models, options and views,
+        the report windows and the chunk size (never the run count, nor any number)."""
+        from tracklab.worlds.tracking import TrackingStructure, default_chunk, windows_of
+
+        lanes = tuple(self.declared(fc) for fc in self.filters)
+        chunk = int(chunk or self.chunk or default_chunk(self.scenario, self.sensor))
+        return TrackingStructure(lanes, windows_of(self.pred_windows), chunk, elementwise)
+
+    def params(self):
+        """Every number of the experiment, as the compiled program's argument."""
+        from tracklab.worlds.tracking import TrackingParams
+
+        filters = [{k: np.asarray(v, float) for k, v in fc.params.items()} for fc in self.filters]
+        return TrackingParams(self.scenario, self.sensor, self.prior_covariance(), self.prior["acc_sigma"] ** 2, filters)
+
+    def filter_specs(self):
+        """The experiment's filters built with its numbers, as ``FilterSpec``s: to run one on
+        measurements of one's own (``run_filter``) or in ``tracklab.monte_carlo``."""
+        import jax.numpy as jnp
+
+        from tracklab.worlds.tracking import FilterSpec
+
+        structure, params = self.structure(), self.params()
+        specs = []
+        for f, p in zip(structure.filters, params.filters):
+            p = {k: jnp.asarray(v) for k, v in p.items()}
+            r = f.realise(params.scenario, params.sensor, p, params.prior_extra_var)
+            specs.append(FilterSpec(f.label, f.kind, r.filter, r.model, r.prior_extra_var, r.view))
+        return specs
+
+    # what a sweep plots: (summary key, title)
+    sweep_metrics = (("rmse_pos", "time-averaged position RMSE ({pos})"), ("nees", "average NEES"),
+                     ("pred_err_rms", "RMS one-step prediction error ({pos})"))
+
+    def world(self, structure):
+        from tracklab.worlds import tracking
+
+        return tracking.world(structure)
+
+    def scaled(self, params, factors: dict):
+        """``params`` with every filter's parameters named in ``factors`` multiplied by them."""
+        return params._replace(filters=[{k: (v * factors[k] if k in factors and scales(fc.kind, p, k) else v)
+                                         for k, v in p.items()} for fc, p in zip(self.filters, params.filters)])
+
+    def summarise(self, structure, params, sums, out) -> dict:
+        """The statistics document of one parameter set's sums (the runner's ``out``)."""
+        from tracklab.metrics import statistics
+        from tracklab.worlds import tracking
+
+        return statistics(tracking.result(structure, params, sums, out), self.window, self.pred_windows)
+
+    @property
+    def units(self):
+        return tuple(getattr(self.scenario, "units", ("m", "m/s")))
+
+    def monte_carlo(self, runs=None, seed=None, progress=None, chunk=None, precision=None):
+        from tracklab.worlds import tracking
+
+        return tracking.run(self.structure(chunk), self.params(), runs or self.runs, self.seed if seed is None else seed,
+                            progress=progress, precision=precision or self.precision)
+
+    def memory_bytes(self, runs=None, chunk=None) -> float:
+        """A lower bound on the bytes a run needs: one chunk's random draws (float32) for every
+        step, and each filter's per-step statistics on the host."""
+        chunk = self.structure(chunk).chunk
+        width = 2 * self.dim + self.sensor.m
+        return chunk * self.steps * width * 4.0 + len(self.filters) * self.steps * 64 * 8.0
+
+    def check_memory(self, runs=None, limit=None):
+        from tracklab.memory import check
+
+        check(self.path, self.memory_bytes(runs), limit, f"a chunk of runs x {self.steps} steps",
+              "set a smaller experiment.chunk, or fewer experiment.steps")
+
+    def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None, max_memory=None):
+        """Run and write the results folder; returns the statistics dictionary.
+
+        The output folder and the memory need are checked before anything compiles."""
+        from tracklab.output import atomic_folder, check_results_folder
+        from tracklab.report import results_path, write_results
+
+        out = check_results_folder(results_path(self, out), self.path)
+        self.check_memory(runs, max_memory)
+        res = self.monte_carlo(runs=runs, seed=seed, progress=progress, precision=precision)
+        with atomic_folder(out, self.path) as tmp:
+            return write_results(self, res, tmp, figures=figures)
