@@ -17,8 +17,10 @@ chunk of runs, ``chunk(params, keys, live, exclude) -> sums``, plus a hashable
 * ``live`` (B,) marks real runs (the last chunk and the devices' shares are
   padded with dead ones); ``exclude`` (lanes, B) marks runs left out of a lane's
   sums (a lane: one compared filter, tracker or case).
-* ``sums`` is a pytree of sums over the chunk's live runs. How the parts of a
-  chunk, of the devices and of the chunks are combined follows from each leaf's
+* ``sums`` is a pytree of sums over the chunk's live runs. Each device keeps the
+  sums of its share of a chunk (the program passes nothing between devices, so no
+  device ever waits on another inside it); the host combines the devices' parts.
+  How the parts of a chunk, of the devices and of the chunks are combined follows from each leaf's
   name (``combine_rule``): ``max…``/``min…`` are maxima/minima, ``_example…``
   and ``example…`` belong to run 0 and are kept from the first chunk,
   the top-level ``diverged_runs`` (lanes, B) flags per run, everything else adds
@@ -88,22 +90,23 @@ def _leaf_name(path) -> str:
     return keys[-1] if keys else ""
 
 
-def _combine_devices(out, B):
-    """One chunk's sums from the per-device parts (leading axis: device)."""
+def combine_devices(parts, B, xp=np):
+    """One chunk's sums from the devices' parts (leading axis: device), by each leaf's rule;
+    ``xp``: numpy on the host, jax.numpy inside a traced function."""
 
     def leaf(path, v):
         rule = combine_rule(_leaf_name(path))
         if rule == "first":  # run 0 lives on the first device
             return v[0]
         if rule == "runs":
-            return jnp.moveaxis(v, 0, -2).reshape(v.shape[1:-1] + (-1,))[..., :B]
+            return xp.moveaxis(v, 0, -2).reshape(v.shape[1:-1] + (-1,))[..., :B]
         if rule == "max":
-            return jnp.max(v, axis=0)
+            return xp.max(v, axis=0)
         if rule == "min":
-            return jnp.min(v, axis=0)
-        return jnp.sum(v, axis=0)
+            return xp.min(v, axis=0)
+        return xp.sum(v, axis=0)
 
-    return jax.tree_util.tree_map_with_path(leaf, out)
+    return jax.tree_util.tree_map_with_path(leaf, parts)
 
 
 def run_keys(key, idx):
@@ -111,34 +114,46 @@ def run_keys(key, idx):
     return jax.vmap(lambda i: jax.random.fold_in(key, i))(idx)
 
 
-def sharded(world: World) -> Callable:
-    """``(params, key, idx, live, exclude) -> sums`` of the runs ``idx``: traceable (jit, grad,
-    vmap over params), each device running its share of the runs and the shares' sums combined."""
+def per_device(world: World) -> Callable:
+    """``(params, key, idx, live, exclude) -> parts``: each device runs its share of the runs
+    ``idx`` and keeps its own sums (every leaf gains a leading device axis). Nothing passes
+    between the devices, so no device ever waits for another inside the program."""
     devices = jax.devices()
     n_dev = len(devices)
 
     def local(params, key, idx, live, exclude):
-        return world.chunk(params, run_keys(key, idx), live, exclude)
+        parts = world.chunk(params, run_keys(key, idx), live, exclude)
+        return jax.tree_util.tree_map(lambda v: v[None], parts)
 
     if n_dev == 1:
         return local
     mesh = jax.sharding.Mesh(np.array(devices), ("runs",))
     rep, runs_axis = jax.sharding.PartitionSpec(), jax.sharding.PartitionSpec("runs")
-    per_device = jax.shard_map(
-        lambda *a: jax.tree_util.tree_map(lambda v: v[None], local(*a)), mesh=mesh,
-        in_specs=(rep, rep, runs_axis, runs_axis, jax.sharding.PartitionSpec(None, "runs")),
-        out_specs=runs_axis, check_vma=False)
+    shares = jax.shard_map(local, mesh=mesh, in_specs=(rep, rep, runs_axis, runs_axis,
+                                                         jax.sharding.PartitionSpec(None, "runs")),
+                           out_specs=runs_axis, check_vma=False)
 
     def split(params, key, idx, live, exclude):
-        B = idx.shape[0]
-        pad = -B % n_dev  # dead runs to fill the last device
+        pad = -idx.shape[0] % n_dev  # dead runs to fill the last device
         if pad:
             idx = jnp.concatenate([idx, jnp.zeros((pad,), idx.dtype)])
             live = jnp.concatenate([live, jnp.zeros((pad,), bool)])
             exclude = jnp.concatenate([exclude, jnp.ones(exclude.shape[:-1] + (pad,), bool)], axis=-1)
-        return _combine_devices(per_device(params, key, idx, live, exclude), B)
+        return shares(params, key, idx, live, exclude)
 
     return split
+
+
+def sharded(world: World) -> Callable:
+    """``(params, key, idx, live, exclude) -> sums`` of the runs ``idx``: traceable (jit, grad,
+    vmap over params), the devices' parts combined inside the function (tuning differentiates
+    through the combined sums)."""
+    parts = per_device(world)
+
+    def combined(params, key, idx, live, exclude):
+        return combine_devices(parts(params, key, idx, live, exclude), idx.shape[0], jnp)
+
+    return combined
 
 
 def in_precision(params, precision: str):
@@ -172,9 +187,9 @@ def program(world: World, params, precision: str = "float64", points: int | None
         _PROGRAMS.move_to_end(key)
         return _PROGRAMS[key], 0.0
     t0 = time.perf_counter()
-    fn = sharded(world)
+    fn = per_device(world)
     lead = ()
-    if points is not None:
+    if points is not None:  # parts (points, devices, …)
         fn = jax.vmap(fn, in_axes=(0, None, None, None, 0))
         lead = (points,)
     args = (params, jax.random.key(0), jnp.zeros((B,), jnp.uint32), jnp.zeros((B,), bool),
@@ -244,13 +259,19 @@ def run(world: World, params, runs: int, key, *, precision: str = "float64", poi
         B = world.chunk_size
         acc = Accumulator()
         n_chunks = -(-runs // B)
+        lead = 1 if points is not None else 0
+
+        def combined(parts):  # the devices' parts of one chunk, combined on the host
+            parts = jax.tree_util.tree_map(lambda v: np.moveaxis(np.asarray(v), lead, 0), jax.device_get(parts))
+            return combine_devices(parts, B)
+
         no_exclusion = jnp.zeros(((points,) if points is not None else ()) + (world.lanes, B), bool)
         for c in range(n_chunks):
             idx = np.arange(c * B, (c + 1) * B, dtype=np.uint32)
             args = (params, key, jnp.asarray(idx), jnp.asarray(idx < runs))
-            sums, flags = pop_diverged(jax.device_get(fn(*args, no_exclusion)))
+            sums, flags = pop_diverged(combined(fn(*args, no_exclusion)))
             if flags is not None and flags.any():  # the chunk again, those runs left out from their first step
-                sums, _ = pop_diverged(jax.device_get(fn(*args, jnp.asarray(flags))))
+                sums, _ = pop_diverged(combined(fn(*args, jnp.asarray(flags))))
             acc.add(sums)
             if progress:
                 progress(min((c + 1) * B, runs), runs)
