@@ -80,3 +80,19 @@ def test_cli_sweep(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "tracklab.cli", "sweep", str(path), "--grid", "q=1:2"],
                          capture_output=True, text=True, cwd=tmp_path)
     assert bad.returncode == 2 and bad.stderr.startswith("error:") and "--grid" in bad.stderr
+
+
+def test_a_curve_that_barely_moves_is_drawn_flat():
+    """A sweep curve whose values change by a fraction of a percent gets a linear axis at least
+    ±10 % about them (a log axis scaled to the data would fill the panel); a decade or more: log."""
+    from tracklab.report import pyplot
+    from tracklab.sweep import _value_axis
+
+    plt = pyplot()
+    fig, (flat, steep) = plt.subplots(1, 2)
+    _value_axis(flat, np.array([2.6113, 2.6114, 2.6139]), positive=True)
+    _value_axis(steep, np.array([2.4, 40.0, 1100.0]), positive=True)
+    lo, hi = flat.get_ylim()
+    assert flat.get_yscale() == "linear" and lo <= 2.6126 * 0.9 and hi >= 2.6126 * 1.1
+    assert steep.get_yscale() == "log"
+    plt.close(fig)

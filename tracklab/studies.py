@@ -6,6 +6,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
+
 from tracklab.errors import ConfigError
 
 
@@ -38,6 +40,7 @@ def run_tune(exp, names, *, steps, lr, loss, runs_per_step, labels, out_toml: Pa
     from tracklab.output import TUNED_HEADER, check_tuned_file, write_text_atomically
     from tracklab.tune import tune, tuned_document
 
+    written_to = out_toml  # as given (the log names it so, not as this machine resolves it)
     out_toml = check_tuned_file(out_toml, exp.path)
 
     def progress(k, value, gnorm):
@@ -46,13 +49,17 @@ def run_tune(exp, names, *, steps, lr, loss, runs_per_step, labels, out_toml: Pa
     def number(v):
         return f"{v:.6g}" if math.isfinite(v) else "— (no finite value)"
 
+    def shown(v):  # a parameter to 6 significant digits (the tuned file holds every digit)
+        a = np.asarray(v, float)
+        return number(float(a)) if a.ndim == 0 else "[" + ", ".join(number(float(x)) for x in a.ravel()) + "]"
+
     res = tune(exp, names, steps=steps, lr=lr, loss=loss, runs_per_step=runs_per_step, labels=labels, every=every,
                progress=progress, eval_runs=eval_runs)
     if res.stopped:
         print(f"warning: {res.stopped}", file=sys.stderr)
         log(res.stopped)
     for label, p in res.params.items():
-        log(f"{label}: " + ", ".join(f"{k} {res.initial[label][k]} -> {v}" for k, v in p.items()))
+        log(f"{label}: " + ", ".join(f"{k} {shown(res.initial[label][k])} -> {shown(v)}" for k, v in p.items()))
     log(f"held-out {loss}: {number(res.eval_initial)} -> {number(res.eval_tuned)}")
     text = TUNED_HEADER + "\n" + dump_toml(tuned_document(exp, res, out_toml))
 
@@ -63,7 +70,7 @@ def run_tune(exp, names, *, steps, lr, loss, runs_per_step, labels, out_toml: Pa
             raise ConfigError(exp.path, "--out", str(out_toml), f"not written: the tuned values are refused ({e.allowed})") from None
 
     write_text_atomically(out_toml, text, verify)
-    log(f"tuned experiment written to {out_toml}")
+    log(f"tuned experiment written to {written_to}")
     return res
 
 

@@ -250,6 +250,22 @@ def _edges(values, log):
     return np.concatenate([[v[0] - (mid[0] - v[0])], mid, [v[-1] + (v[-1] - mid[-1])]])
 
 
+def _value_axis(ax, vals, positive):
+    """A curve's value axis: logarithmic when its values span a decade or more; otherwise linear,
+    at least ±10 % about their middle, so that a change of a fraction of a percent reads as flat
+    (on a log axis auto-scaled to the data it would fill the panel)."""
+    if vals.size == 0:
+        return
+    lo, hi = float(np.min(vals)), float(np.max(vals))
+    if positive and hi >= 10 * lo:
+        ax.set_yscale("log")
+        return
+    mid, half = (lo + hi) / 2, (hi - lo) / 2
+    half = max(half * 1.1, 0.1 * abs(mid), 1e-12)
+    ax.set_ylim(mid - half, mid + half)
+    ax.ticklabel_format(axis="y", style="plain", useOffset=False)
+
+
 def _plot(doc, names, labels, folder):
     from tracklab.report import pyplot
 
@@ -272,7 +288,7 @@ def _plot(doc, names, labels, folder):
             if len(names) == 1:
                 ax.plot(axes_vals[0], vals, "o-")
                 ax.set_xscale("log" if log[names[0]] else "linear")
-                ax.set_yscale("log" if positive else "linear")
+                _value_axis(ax, vals.compressed(), positive)
                 ax.set_xlabel(titles[names[0]])
                 ax.set_ylabel(title, fontsize=8)
                 ax.grid(True, which="both", alpha=0.3)
