@@ -171,6 +171,19 @@ def results_path(exp, out=None) -> Path:
     return Path(out) if out is not None else Path("results") / exp.name
 
 
+def run_into_folder(exp, out, runs, max_memory, simulate, write):
+    """What ``run`` is for every kind of experiment: the output folder and the memory need checked
+    before anything compiles, then ``simulate()``, then ``write(its result, folder)`` into a
+    temporary folder swapped in whole; returns what ``write`` returns (the statistics)."""
+    from tracklab.output import atomic_folder, check_results_folder
+
+    out = check_results_folder(results_path(exp, out), exp.path)
+    exp.check_memory(runs, max_memory)
+    result = simulate()
+    with atomic_folder(out, exp.path) as tmp:
+        return write(result, tmp)
+
+
 def _example(exp, res):
     """Run 0 in CV layout: truth, each filter's estimates and (Cartesian sensors) the measurements."""
     ex = res.example

@@ -239,17 +239,14 @@ class AirborneExperiment:
               "raise airborne.sample_dt or airborne.average, or shorten airborne.duration")
 
     def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None, max_memory=None):
-        from tracklab.output import atomic_folder, check_results_folder
-        from tracklab.report import results_path
+        from tracklab.report import run_into_folder
 
-        out = check_results_folder(results_path(self, out), self.path)
-        self.check_memory(runs, max_memory)
-        runs = runs or self.runs
-        acc, wall, compile_s = self.monte_carlo(runs, seed, progress, precision)
-        doc = self.document(acc, runs, wall, compile_s, precision or self.precision)
-        with atomic_folder(out, self.path) as tmp:
-            write_airborne_results(doc, tmp, figures)
-        return doc
+        def simulate():
+            acc, wall, compile_s = self.monte_carlo(runs or self.runs, seed, progress, precision)
+            return self.document(acc, runs or self.runs, wall, compile_s, precision or self.precision)
+
+        return run_into_folder(self, out, runs, max_memory, simulate,
+                               lambda doc, tmp: write_airborne_results(doc, tmp, figures))
 
     def window_masks(self):
         t = self.period * np.arange(1, self.steps + 1)
@@ -354,11 +351,12 @@ def airborne_tables(doc) -> str:
 
 
 def write_airborne_results(doc, folder: Path, figures=True):
+    """The tables and (``figures``) the figures of an airborne statistics document; returns it."""
     from tracklab.report import pyplot, write_tables
 
     write_tables(folder, doc, airborne_tables(doc))
     if not figures:
-        return
+        return doc
     plt = pyplot()
 
     t, rng = np.asarray(doc["t"]), np.asarray(doc["nominal_range"]) / 1e3
@@ -391,3 +389,4 @@ def write_airborne_results(doc, folder: Path, figures=True):
         fig.tight_layout()
         fig.savefig(folder / name, dpi=110)
         plt.close(fig)
+    return doc

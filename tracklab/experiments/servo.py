@@ -157,20 +157,19 @@ class ServoExperiment:
               "fewer servo.frames or servo.frame_ticks")
 
     def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None, max_memory=None):
-        from tracklab.output import atomic_folder, check_results_folder
-        from tracklab.report import results_path
-
         import jax
 
-        out = check_results_folder(results_path(self, out), self.path)
-        self.check_memory(runs, max_memory)
+        from tracklab.report import run_into_folder
+
         precision = precision or self.precision
-        with jax.enable_x64(precision == "float64"):  # single precision: traced and run in float32
-            doc = self.simulate(runs or self.runs, self.seed if seed is None else seed, progress, precision)
-        doc["precision"] = precision
-        with atomic_folder(out, self.path) as tmp:
-            write_servo_results(doc, tmp, figures)
-        return doc
+
+        def simulate():
+            with jax.enable_x64(precision == "float64"):  # single precision: traced and run in float32
+                doc = self.simulate(runs or self.runs, self.seed if seed is None else seed, progress, precision)
+            return dict(doc, precision=precision)
+
+        return run_into_folder(self, out, runs, max_memory, simulate,
+                               lambda doc, tmp: write_servo_results(doc, tmp, figures))
 
     def structure(self, chunk=None):
         """What the compiled program depends on: the timing, the target's kind, the cases' modes and
@@ -335,11 +334,12 @@ def case_summary(sums: dict, runs: int, estimated: bool) -> dict:
 
 
 def write_servo_results(doc, folder: Path, figures=True):
+    """The tables and (``figures``) the figures of a servo statistics document; returns it."""
     from tracklab.report import pyplot, write_tables
 
     write_tables(folder, doc)
     if not figures:
-        return
+        return doc
     plt = pyplot()
 
     ex = doc["example_run"]
@@ -369,3 +369,4 @@ def write_servo_results(doc, folder: Path, figures=True):
         fig.tight_layout()
         fig.savefig(folder / "rate_error.png", dpi=110)
         plt.close(fig)
+    return doc

@@ -148,11 +148,8 @@ class Experiment:
         """Run and write the results folder; returns the statistics dictionary.
 
         The output folder and the memory need are checked before anything compiles."""
-        from tracklab.output import atomic_folder, check_results_folder
-        from tracklab.report import results_path, write_results
+        from tracklab.report import run_into_folder, write_results
 
-        out = check_results_folder(results_path(self, out), self.path)
-        self.check_memory(runs, max_memory)
-        res = self.monte_carlo(runs=runs, seed=seed, progress=progress, precision=precision)
-        with atomic_folder(out, self.path) as tmp:
-            return write_results(self, res, tmp, figures=figures)
+        return run_into_folder(self, out, runs, max_memory,
+                               lambda: self.monte_carlo(runs=runs, seed=seed, progress=progress, precision=precision),
+                               lambda res, tmp: write_results(self, res, tmp, figures=figures))
