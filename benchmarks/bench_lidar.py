@@ -202,7 +202,9 @@ def child_memory(runs, chunk, labels=None):
     t0 = time.perf_counter()
     import jax
 
-    import tracklab  # noqa: F401
+    import tracklab
+
+    tracklab.configure()  # one CPU device per core, Eigen single-threaded, 64-bit mode
 
     exp = _load(labels)
     jax.block_until_ready(jax.numpy.zeros(1))  # backend initialised
@@ -481,7 +483,9 @@ def main():
     print(f"  baseline {_mib(m['baseline_kib']):.0f} MiB, after 1st chunk {_mib(m['after_first_chunk_kib']):.0f} MiB, "
           f"peak {_mib(m['peak_kib']):.0f} MiB, wall {m['wall_s']:.1f} s", flush=True)
 
-    import tracklab  # noqa: F401  (float64)
+    import tracklab
+
+    tracklab.configure()  # one CPU device per core, Eigen single-threaded, 64-bit mode
     from tracklab.worlds.tracking import default_chunk
 
     info = machine_info()

@@ -31,7 +31,9 @@ def main():
     import jax
     import jax.numpy as jnp
 
-    import tracklab  # noqa: F401  (float64 mode, XLA flags)
+    import tracklab
+
+    tracklab.configure()  # one CPU device per core, Eigen single-threaded, 64-bit mode
     from tracklab import random
 
     runs, steps, m = (1000, 200, 2) if args.quick else (10_000, 200, 2)

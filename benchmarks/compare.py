@@ -111,7 +111,7 @@ def model_matrices(exp):
 
     spec = exp.filter_specs()[0]
     fc = exp.filters[0]
-    m = spec.model
+    m = spec.layout
     q = float(np.asarray(fc.params["q"]))
     r = np.broadcast_to(np.asarray(fc.params["r"], float), (exp.sensor.m,))
     return spec, np.asarray(m.F), np.asarray(m.Q(q)), np.diag(r)
@@ -133,6 +133,11 @@ def tracklab_e2e(exp, runs, chunk, repeat):
             "sums": tracking.unpack(t["sums"], exp.dim)[structure.labels[0]]}
 
 
+def tracking_pv_index(layout):
+    """Indices of [x, ẋ, y, ẏ, …] in a filter's state."""
+    return [i for a in range(layout.dim) for i in (layout.pos_idx[a], layout.vel_idx[a])]
+
+
 def tracklab_reference(exp, data, n):
     """tracklab's estimates (CV layout) of the first n runs, through run_filter."""
     import numpy as np
@@ -140,10 +145,10 @@ def tracklab_reference(exp, data, n):
     import tracklab
 
     spec = exp.filter_specs()[0]
-    x0, P0 = spec.model.embed(data.prior[:n], data.P0, spec.prior_extra_var)
+    x0, P0 = spec.layout.embed(data.prior[:n], data.P0, spec.prior_extra_var)
     res = tracklab.run_filter(spec.filter, data.z[:n], x0=np.asarray(x0), P0=np.asarray(P0[0] if P0.ndim == 3 else P0),
                               dt=data.dt)
-    return np.asarray(res.x)[..., spec.pv_index]
+    return np.asarray(res.x)[..., tracking_pv_index(spec.layout)]
 
 
 # ----------------------------------------------------------------------------- dynamax
@@ -349,7 +354,9 @@ def child_memory(case, impl, runs):
     """In a fresh process: peak RSS of one implementation over ``runs`` runs."""
     import jax
 
-    import tracklab  # noqa: F401
+    import tracklab
+
+    tracklab.configure()  # one CPU device per core, Eigen single-threaded, 64-bit mode
 
     exp = load_case(case)
     if impl == "tracklab":
@@ -558,7 +565,9 @@ def main():
     import dynamax
     import filterpy
 
-    import tracklab  # noqa: F401  (float64)
+    import tracklab
+
+    tracklab.configure()  # one CPU device per core, Eigen single-threaded, 64-bit mode
     from bench_lidar import machine_info
 
     info = machine_info()

@@ -1,7 +1,7 @@
 """Test-session settings.
 
 One CPU device per worker process: ``pytest -n 2`` already keeps both cores busy, where
-``import tracklab`` alone would make one device per core; splitting each chunk over
+``tracklab.configure()`` alone would make one device per core; splitting each chunk over
 devices costs compile time and no test needs it, except the device-count test, which
 starts its own processes with 2 and 4 devices.
 
@@ -20,6 +20,10 @@ import pytest
 
 if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=1").strip()
+
+from tracklab.runtime import configure  # noqa: E402
+
+configure()  # what the `tracklab` command sets: Eigen single-threaded, 64-bit mode (the device count above)
 
 _CACHE_KEY = "tracklab_jax_cache"
 

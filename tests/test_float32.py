@@ -112,7 +112,7 @@ def test_float32_matches_float64_on_the_same_measurements(kind, opts):
     with jax.enable_x64(False):  # the filter built and run in single precision
         f32 = lambda a: jnp.asarray(np.asarray(a), jnp.float32)
         flt = build(kind, make(), sensor, {k: f32(v) for k, v in p.items()}, opts)
-        s = tracklab.run_filter(flt, f32(z), x0=f32(x0), P0=f32(P0))
+        s = tracklab.run_filter(flt, f32(z), x0=f32(x0), P0=f32(P0), precision="float32")
     assert s.x.dtype == np.float32 and d.x.dtype == np.float64
     # m, against errors of ~35 m; the IMM's mixture weights are exponentials of log-likelihood
     # differences, whose float32 rounding moves its estimate by up to a few metres while the modes settle

@@ -141,6 +141,8 @@ def test_chunking_does_not_change_statistics(tmp_path):
 
 DEVICE_SCRIPT = """
 import json, sys
+import tracklab
+tracklab.configure()  # as the command does (the device count from XLA_FLAGS)
 import jax, numpy as np
 from tracklab.config import load_experiment
 exp = load_experiment(sys.argv[1])
@@ -187,7 +189,7 @@ def test_diverging_runs_are_counted_and_excluded():
         return s, out._replace(x=jnp.where(boom, jnp.nan, out.x))
 
     bad = Filter(good.init, step, good.params)
-    specs = [FilterSpec("good", "kf", good, m), FilterSpec("bad", "kf", bad, m)]
+    specs = [FilterSpec("good", good, "kf", layout=m), FilterSpec("bad", bad, "kf", layout=m)]
     P0 = np.diag([30.0, 5.0, 30.0, 5.0]) ** 2
     res = monte_carlo(sc, sensor, specs, 400, jax.random.key(3), P0, chunk=128)
     n_bad = float(res.sums["bad"]["diverged"])

@@ -72,7 +72,7 @@ def test_windowed_prediction_errors_equal_those_of_the_runs_filtered_one_by_one(
     masks = {"": (np.arange(1, T + 1) >= 10), "[6-10 s]": (t >= 6.0 - 1e-9) & (t <= 10.0 + 1e-9)}
     masks["[elsewhere]"] = masks[""] & ~masks["[6-10 s]"]
     for spec in exp.filter_specs():
-        x0, P0s = spec.model.embed(prior, jnp.asarray(P0), exp.prior["acc_sigma"] ** 2)
+        x0, P0s = spec.layout.embed(prior, jnp.asarray(P0), exp.prior["acc_sigma"] ** 2)
         out = tracklab.run_filter(spec.filter, z, x0=x0, P0=P0s, dt=exp.dt)
         err = np.asarray(out.x_pred[..., [0, 3]] - truth[:, 1:, 0::2])  # (runs, T, 2): az, el
         norm = np.linalg.norm(err, axis=-1)

@@ -108,6 +108,8 @@ def test_statistics_do_not_depend_on_the_chunk_size(tmp_path, world):
 
 DEVICES = """
 import json, sys
+import tracklab
+tracklab.configure()  # as the command does (the device count from XLA_FLAGS)
 import jax, numpy as np
 sys.path.insert(0, sys.argv[1])
 from test_runner import _sums

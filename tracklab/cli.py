@@ -83,12 +83,16 @@ def cmd_list(args) -> int:
     for k in KINDS.values():
         print(f"  {k.name:<16} {k.doc} [sensors: {', '.join(k.accepts)}]")
         print(f"  {'':<16}   {', '.join(p.describe(n) for n, p in k.params.items())}")
+    own = '"package.module:factory"'
+    print(f"  {own:<16} your own: factory(context, **the table's other keys) -> Filter (README: Your own filter)")
     print("sensors:")
     for k, desc in SENSOR_KINDS.items():
         print(f"  {k:<16} {desc}")
+    print(f"  {own:<16} your own: factory(Context(dt, steps, dim), **keys) -> CustomSensor(h, R, angles=...)")
     print("scenarios:")
     for k, desc in SCENARIO_KINDS.items():
         print(f"  {k:<16} {desc}")
+    print(f"  {own:<16} your own: factory(Context(dt, steps, dim), **keys) -> a scenario, or truth(key)")
     print("airborne-radar trackers ([[tracker]] of an [airborne] file, paper 001):")
     for k, desc in TRACKERS.items():
         print(f"  {k:<16} {desc}")
@@ -290,7 +294,10 @@ def _interrupted_exit():
 def main(argv=None) -> int:
     from tracklab.output import catch_interrupts, interrupted
 
+    from tracklab.runtime import configure
+
     args = build_parser().parse_args(argv)
+    configure()  # one CPU device per core, single-threaded Eigen, 64-bit mode (before JAX starts)
     _compilation_cache()
     catch_interrupts()
     try:

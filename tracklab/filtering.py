@@ -16,33 +16,51 @@ from tracklab.filters.core import Filter, Meas, Prior
 class FilterResult:
     x: jax.Array  # (..., T, n) filtered means
     P: jax.Array  # (..., T, n, n) filtered covariances
-    x_pred: jax.Array  # (..., T, n) one-step predictions
-    nu: jax.Array  # (..., T, m) innovations (0 where not used)
-    S: jax.Array  # (..., T, m, m) innovation covariances
-    valid: jax.Array  # (..., T) update happened
-    dof: jax.Array  # (..., T) innovation components used
+    x_pred: jax.Array | None  # (..., T, n) one-step predictions (None: the filter reports none)
+    nu: jax.Array | None  # (..., T, m) innovations (0 where not used; None: none reported)
+    S: jax.Array | None  # (..., T, m, m) innovation covariances
+    valid: jax.Array | None  # (..., T) update happened
+    dof: jax.Array | None  # (..., T) innovation components used
     aux: Any = None  # what the filter family adds (e.g. the STF's fading factor), per step
+    layout: Any = None  # where position and velocity sit in x (the filter's; None: [x, ẋ, y, ẏ, …])
 
 
-def run_filter(flt: Filter, z, *, x0, P0, params=None, dt: float = 1.0) -> FilterResult:
+def run_filter(flt: Filter, z, *, x0, P0, params=None, dt: float = 1.0, precision: str = "float64") -> FilterResult:
     """Run a filter over a user's measurements.
 
     ``z`` is (T, m) or (N, T, m); a row of NaN is a missed detection
-    (predict-only). ``x0, P0`` is the prior one sample period before ``z[0]``;
-    each step predicts, then updates with ``z[k]``. For single precision, build
-    the filter and call this inside ``with jax.enable_x64(False):`` with float32 inputs.
+    (predict-only). ``x0, P0`` is the prior one sample period before ``z[0]``, in the
+    filter's own state order (its ``layout``);
+    each step predicts, then updates with ``z[k]``. ``precision``: "float64" (whatever
+    JAX's global 64-bit mode) or "float32"; the parameters and inputs are cast to it (a
+    filter's own constants follow the mode it was built in: build it inside
+    ``jax.enable_x64(False)`` for single precision throughout).
     """
-    params = flt.params if params is None else params
-    z = jnp.asarray(z)
-    batched = z.ndim == 3
-    zb = z if batched else z[None]
-    N = zb.shape[0]
-    x0 = jnp.broadcast_to(jnp.asarray(x0, zb.dtype), (N,) + np.shape(x0)[-1:])
-    P0 = jnp.broadcast_to(jnp.asarray(P0, zb.dtype), (N,) + np.shape(P0)[-2:])
-    out = _run_filter_jit(flt.init, flt.step, params, zb, x0, P0, float(dt))
-    if not batched:
-        out = jax.tree_util.tree_map(lambda a: a[0], out)
-    return FilterResult(*out)
+    from tracklab.filters.core import trace_problem
+    from tracklab.montecarlo.runner import in_precision
+
+    if np.ndim(z) not in (2, 3):
+        raise ValueError(f"run_filter: z has shape {np.shape(z)}: expected (T, m) or (N, T, m)")
+    n = np.shape(x0)[-1] if np.ndim(x0) else 0
+    if np.ndim(x0) not in (1, 2) or np.shape(P0)[-2:] != (n, n) or np.ndim(P0) not in (2, 3):
+        raise ValueError(f"run_filter: x0 {np.shape(x0)} and P0 {np.shape(P0)}: expected (n,) or (N, n), and (n, n) "
+                         f"or (N, n, n), in the filter's own state order")
+    why = trace_problem(flt, n, np.shape(z)[-1], params)
+    if why:
+        raise ValueError(f"run_filter: the filter {why}")
+    with jax.enable_x64(precision == "float64"):
+        dtype = jnp.float64 if precision == "float64" else jnp.float32
+        params = in_precision(flt.params if params is None else params, precision)
+        z = jnp.asarray(z, dtype)
+        batched = z.ndim == 3
+        zb = z if batched else z[None]
+        N = zb.shape[0]
+        x0 = jnp.broadcast_to(jnp.asarray(x0, dtype), (N,) + np.shape(x0)[-1:])
+        P0 = jnp.broadcast_to(jnp.asarray(P0, dtype), (N,) + np.shape(P0)[-2:])
+        out = _run_filter_jit(flt.init, flt.step, params, zb, x0, P0, float(dt))
+        if not batched:
+            out = jax.tree_util.tree_map(lambda a: a[0], out)
+    return FilterResult(*out, layout=flt.layout)
 
 
 def _run_filter_impl(init, step, params, z, x0, P0, dt):

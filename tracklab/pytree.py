@@ -9,7 +9,30 @@ part of the pytree's structure, which the program is compiled for.
 
 from dataclasses import field
 
+import jax
+
 
 def static(default=None):
     """A dataclass field that belongs to the structure (hashable; fixed in the compiled program)."""
     return field(default=default, metadata={"static": True})
+
+
+def _key_name(k) -> str:
+    for attr in ("key", "name", "idx"):
+        if hasattr(k, attr):
+            return str(getattr(k, attr))
+    return str(k)
+
+
+def named_leaves(tree) -> dict:
+    """The leaves of a pytree by name: the keys, attribute names and indices on the way to
+    each leaf joined by '.' (``{"q": …, "r": …}``, ``{"noise": {"q": …}}`` -> "noise.q",
+    ``[a, b]`` -> "0", "1"); a pytree that is one leaf is named ""."""
+    return {".".join(_key_name(k) for k in path): leaf for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
+
+
+def with_leaves(tree, values: dict):
+    """``tree`` with the leaves named in ``values`` (as ``named_leaves`` names them) replaced."""
+    paths, treedef = jax.tree_util.tree_flatten_with_path(tree)
+    leaves = [values.get(".".join(_key_name(k) for k in path), leaf) for path, leaf in paths]
+    return jax.tree_util.tree_unflatten(treedef, leaves)

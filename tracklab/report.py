@@ -138,6 +138,7 @@ def stats_document(exp, res):
     from tracklab import __version__
 
     st = statistics(res, exp.window, exp.pred_windows)
+    ran = exp.ran_with()
     stride = series_stride(res.steps)
     st = {
         "bounds": _decimate(st["bounds"], stride),
@@ -160,7 +161,8 @@ def stats_document(exp, res):
         "bounds": st["bounds"],
         "example_run": _decimate(_example(exp, res), stride),
         "filters": {
-            label: {"kind": f["kind"], "label": label, "summary": f["summary"], "series": f["series"]}
+            label: {"kind": f["kind"], "label": label, "params": ran.get(label, {}), "summary": f["summary"],
+                    "series": f["series"]}
             for label, f in st["filters"].items()
         },
     }
@@ -177,10 +179,11 @@ def run_into_folder(exp, out, runs, max_memory, simulate, write):
     temporary folder swapped in whole; returns what ``write`` returns (the statistics)."""
     from tracklab.output import atomic_folder, check_results_folder
 
-    out = check_results_folder(results_path(exp, out), exp.path)
+    file = exp.path if exp.path is not None else "tracklab.experiment"  # what a refusal names
+    out = check_results_folder(results_path(exp, out), file)
     exp.check_memory(runs, max_memory)
     result = simulate()
-    with atomic_folder(out, exp.path) as tmp:
+    with atomic_folder(out, file) as tmp:
         return write(result, tmp)
 
 
@@ -190,7 +193,7 @@ def _example(exp, res):
     if not ex:
         return {}
     doc = {"truth": ex["truth"][1:], "estimates": ex["x"]}
-    kinds = [s.kind for s in exp.sensor.sensors]
+    kinds = [s.kind for s in exp.sensor.sensors] if exp.sensor is not None else []
     if len(kinds) == 1 and kinds[0] in ("cartesian", "mount"):
         doc["measurements"] = ex["z"]
     return doc

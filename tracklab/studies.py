@@ -20,7 +20,11 @@ def check_tune(exp, names, labels, out_toml, runs_per_step=None, max_memory=None
 
     chosen = selection(exp, names, labels)
     if not chosen:
-        raise ConfigError(exp.path, field, ",".join(names), "no selected filter has any of these parameters")
+        from tracklab.worlds.tracking import FilterSpec
+
+        own = [fc.label for fc in getattr(exp, "filters", []) if isinstance(fc, FilterSpec)]
+        hint = f" (filters of one's own, {', '.join(own)}, are tuned from Python: tracklab.tune)" if own else ""
+        raise ConfigError(exp.path, field, ",".join(names), f"no selected filter has any of these parameters{hint}")
     why = unwritable(exp, chosen)
     if why:
         raise ConfigError(exp.path, field, ",".join(names), why)

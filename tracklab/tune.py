@@ -45,12 +45,13 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from tracklab.filters.kind import FilterKind, WriteBack, positive
+from tracklab.filters.kind import FilterKind, WriteBack, constraint_of, positive
 from tracklab.filters.registry import KINDS, tunes
 from tracklab.montecarlo import runner
 from tracklab.sensors import SENSOR_SIGMAS
 from tracklab.worlds import tracking
-from tracklab.worlds.tracking import LOSSES
+from tracklab.pytree import named_leaves, with_leaves
+from tracklab.worlds.tracking import LOSSES, FilterSpec
 
 
 def _constrained_together(kind: FilterKind, params: dict, names):
@@ -109,6 +110,12 @@ def unwritable(exp, chosen: dict) -> str | None:
         return None  # the closed loops' tuned numbers are [[tracker]] / [[estimator]] fields
 
     for fc, table in zip(exp.filters, exp.raw["filter"]):
+        if isinstance(fc, FilterSpec):  # a factory's filter: a tuned value goes back as the keyword of that name
+            missing = [n for n in chosen.get(fc.label, ()) if n not in table]
+            if missing:
+                return (f"filter {fc.label!r}: {missing[0]} is no key of its [[filter]] table, so a tuned value "
+                        f"has nowhere to go in the file (tune it from Python: tracklab.tune)")
+            continue
         kind = KINDS[fc.kind]
         for n in chosen.get(fc.label, ()):
             p = kind.params[n]
@@ -126,17 +133,27 @@ def memory_bytes(exp, runs_per_step, eval_runs=None) -> float:
     and the held-out evaluation's random draws."""
     if hasattr(exp, "tune_memory_bytes"):
         return exp.tune_memory_bytes(runs_per_step)
-    n = [(3 if fc.model == "ca" else 2) * exp.dim for fc in exp.filters]  # each filter's state dimension
+    n = [fc.report_layout(exp.dim).n if isinstance(fc, FilterSpec) else (3 if fc.model == "ca" else 2) * exp.dim
+         for fc in exp.filters]  # each filter's state dimension
     state = sum(k * (1 + k) for k in n)  # its mean and covariance
     n_eval = eval_runs or min(exp.runs, 2000)
     width = 2 * exp.dim + exp.sensor.m
     return runs_per_step * exp.steps * state * 8.0 + min(n_eval, 1000) * exp.steps * width * 4.0
 
 
-def selection(exp, names, labels=None) -> dict[str, tuple[str, ...]]:
-    """Which parameters of which filters (trackers, estimators) are tuned: {label: names}."""
+def selection(exp, names, labels=None) -> dict:
+    """Which parameters of which filters (trackers, estimators) are tuned: {label: names}.
+
+    ``names``: parameter names (every selected built-in filter that declares one, tunable,
+    has it tuned), or {label: names} naming each filter's own: for a built-in kind a list of
+    its declared parameters, for a filter of one's own (``FilterSpec``) {leaf name:
+    constraint} over its params pytree (``tracklab.pytree.named_leaves``; constraints
+    "positive", "unit", "free" or (lo, hi)). ``ValueError`` in one line for a label, name or
+    constraint that does not fit."""
     if hasattr(exp, "tune_selection"):
         return exp.tune_selection([n for n in names if n in exp.tune_names], labels)
+    if isinstance(names, dict):
+        return _named_selection(exp, names)
     chosen = {}
     for fc in exp.filters:
         if labels and fc.label not in labels:
@@ -144,6 +161,49 @@ def selection(exp, names, labels=None) -> dict[str, tuple[str, ...]]:
         have = tuple(n for n in names if tunes(fc.kind, fc.params, n))
         if have:
             chosen[fc.label] = have
+    return chosen
+
+
+def _named_selection(exp, names: dict) -> dict:
+    by_label = {fc.label: fc for fc in exp.filters}
+    chosen = {}
+    for label, wanted in names.items():
+        if label not in by_label:
+            raise ValueError(f"tune: no filter labelled {label!r} (filters: {', '.join(by_label)})")
+        fc = by_label[label]
+        if isinstance(fc, FilterSpec):
+            if not isinstance(wanted, dict):
+                raise ValueError(f"tune: filter {label!r} is one's own: give each parameter its constraint, "
+                                 f"e.g. {{{label!r}: {{'q': 'positive'}}}}")
+            leaves = named_leaves(fc.filter.params)
+            picked = {}
+            for n, spec in wanted.items():
+                if n not in leaves:
+                    raise ValueError(f"tune: filter {label!r} has no parameter {n!r} (its parameters: "
+                                     f"{', '.join(k or '(the params itself)' for k in leaves)})")
+                if not jnp.issubdtype(jnp.result_type(leaves[n]), jnp.floating):
+                    raise ValueError(f"tune: filter {label!r}: {n} is {jnp.result_type(leaves[n]).name}, not a "
+                                     f"floating-point number: it cannot be differentiated")
+                try:
+                    c = constraint_of(spec)
+                except ValueError as e:
+                    raise ValueError(f"tune: filter {label!r}: {n}: {e}") from None
+                if not np.all(np.asarray(c.inside(np.asarray(leaves[n], float)))):
+                    raise ValueError(f"tune: filter {label!r}: {n} = {np.asarray(leaves[n]).tolist()} is outside "
+                                     f"its constraint {c.bounds}")
+                picked[n] = c
+            if picked:
+                chosen[label] = picked
+            continue
+        kind = KINDS[fc.kind]
+        wanted = list(wanted)
+        for n in wanted:
+            if not tunes(fc.kind, fc.params, n):
+                ok = [k for k in fc.params if tunes(fc.kind, fc.params, k)]
+                raise ValueError(f"tune: filter {label!r} ({kind.name}) has no tunable parameter {n!r} "
+                                 f"(tunable: {', '.join(ok) or 'none'})")
+        if wanted:
+            chosen[label] = tuple(wanted)
     return chosen
 
 
@@ -163,6 +223,9 @@ class Objective:
 
 
 def objective(exp, names, loss="mse_pos", labels=None) -> Objective:
+    losses = getattr(exp, "tune_losses", LOSSES)
+    if loss not in losses:
+        raise ValueError(f"tune: loss {loss!r}: must be one of {', '.join(losses)}")
     chosen = selection(exp, names, labels)
     if not chosen:
         raise ValueError(f"no filter has any of the parameters {', '.join(names)}")
@@ -174,14 +237,29 @@ def objective(exp, names, loss="mse_pos", labels=None) -> Objective:
     params = exp.params()
     base = params.filters
     labels_all = structure.labels
-    kinds = [KINDS[f.kind] for f in structure.filters]
+    entries = dict(zip(labels_all, exp.filters))
     at = {l: labels_all.index(l) for l in chosen}
-    theta0 = {l: encode(kinds[at[l]], base[at[l]], ns) for l, ns in chosen.items()}
     loss_fn = LOSSES[loss]
     window = exp.window
 
+    def own(label):  # a filter of one's own: {name: constraint}
+        return isinstance(entries[label], FilterSpec)
+
+    def encode_one(l):
+        if own(l):
+            leaves = named_leaves(base[at[l]])
+            return {n: c.to_free(jnp.asarray(leaves[n], float)) for n, c in chosen[l].items()}
+        return encode(KINDS[entries[l].kind], base[at[l]], chosen[l])
+
+    def decode_one(l, theta_l, p):
+        if own(l):
+            return with_leaves(p, {n: c.from_free(theta_l[n]) for n, c in chosen[l].items()})
+        return decode(KINDS[entries[l].kind], theta_l, p)
+
+    theta0 = {l: encode_one(l) for l in chosen}
+
     def filters(theta):
-        return [decode(k, theta[l], f) if l in theta else f for k, l, f in zip(kinds, labels_all, base)]
+        return [decode_one(l, theta[l], f) if l in theta else f for l, f in zip(labels_all, base)]
 
     def total(theta, key, idx, live):
         p = params._replace(filters=filters(theta))
@@ -190,12 +268,19 @@ def objective(exp, names, loss="mse_pos", labels=None) -> Objective:
 
     def values(theta):
         f = filters(theta)
-        return {l: {n: f[at[l]][n] for n in ns} for l, ns in chosen.items()}
+        return {l: {n: (named_leaves(f[at[l]])[n] if own(l) else f[at[l]][n]) for n in ns} for l, ns in chosen.items()}
 
     def why_not(vals):
-        return next((why for l, v in vals.items() if (why := acceptable(kinds[at[l]], v, chosen[l]))), None)
+        for l, v in vals.items():
+            if own(l):
+                why = next((f"{n} is not finite" for n, x in v.items() if not np.all(np.isfinite(np.asarray(x)))), None)
+            else:
+                why = acceptable(KINDS[entries[l].kind], v, chosen[l])
+            if why:
+                return why
+        return None
 
-    return Objective(total, theta0, values, chosen, why_not)
+    return Objective(total, theta0, values, {l: tuple(ns) for l, ns in chosen.items()}, why_not)
 
 
 def _closed_loop_objective(exp, chosen, loss) -> Objective:
@@ -239,7 +324,15 @@ def _floats(values: dict) -> dict:
 
 def tune(exp, names, *, steps=200, lr=0.05, loss="mse_pos", runs_per_step=None, eval_runs=None, seed=None,
          labels=None, every=10, progress=None) -> TuneResult:
-    """Adam (optax) on the named parameters; a fresh batch of runs every step."""
+    """Adam (optax) on the named parameters (see ``selection``); a fresh batch of runs every step.
+
+    Runs in float64 whatever JAX's global mode (``tracklab.runtime``)."""
+    with jax.enable_x64(True):
+        return _tune(exp, names, steps=steps, lr=lr, loss=loss, runs_per_step=runs_per_step, eval_runs=eval_runs,
+                     seed=seed, labels=labels, every=every, progress=progress)
+
+
+def _tune(exp, names, *, steps, lr, loss, runs_per_step, eval_runs, seed, labels, every, progress) -> TuneResult:
     obj = objective(exp, names, loss, labels)
     B = int(runs_per_step or min(exp.runs, 256))
     n_eval = int(eval_runs or min(exp.runs, 2000))
@@ -262,6 +355,11 @@ def tune(exp, names, *, steps=200, lr=0.05, loss="mse_pos", runs_per_step=None, 
     for k in range(steps):  # optimisation steps; each one is a whole batched simulation
         val, g = value_and_grad(theta, jax.random.fold_in(train_key, k), idx, live)
         val = float(val)
+        if k == 0:
+            dead = [f"{l}: {n}" for l, gl in g.items() for n, gn in gl.items() if not np.any(np.asarray(gn))]
+            if dead:
+                raise ValueError(f"tune: the loss does not depend on {', '.join(dead)} (its gradient is exactly 0): "
+                                 f"is it used by the filter's step?")
         gnorm = float(jnp.sqrt(sum(jnp.vdot(x, x) for x in jax.tree_util.tree_leaves(g))))
         if not math.isfinite(val):
             theta = last_finite
@@ -308,6 +406,9 @@ def tuned_document(exp, result: TuneResult, out_path) -> dict:
         if not tuned:
             continue
         table["label"] = f"{fc.label}, tuned"
+        if isinstance(fc, FilterSpec):  # a factory's filter: under the keyword of that name
+            table.update({n: np.asarray(v, float).tolist() for n, v in tuned.items()})
+            continue
         for name, p in KINDS[fc.kind].params.items():  # in the order the kind declares them
             if name not in tuned:
                 continue

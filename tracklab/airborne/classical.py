@@ -81,7 +81,9 @@ def loop_gains(sigma_m, tau, sigma_range, sigma_velocity, timing: Timing):
     increment = sigma_m * np.sqrt(1.0 - np.exp(-2.0 * T / tau))  # Singer acceleration's change per period
     lam_r = increment * T**2 / (sigma_range / np.sqrt(timing.n))
     lam_v = increment / T * T**2 / (sigma_velocity / np.sqrt(timing.n))
-    return jnp.stack(kalata_alpha_beta_gamma(jnp.asarray(lam_r))), jnp.stack(kalata_alpha_beta(jnp.asarray(lam_v)))
+    with jax.enable_x64(True):  # numbers of the experiment: float64 whatever JAX's global mode
+        return (np.asarray(jnp.stack(kalata_alpha_beta_gamma(jnp.asarray(lam_r, jnp.float64)))),
+                np.asarray(jnp.stack(kalata_alpha_beta(jnp.asarray(lam_v, jnp.float64)))))
 
 
 def classical(timing: Timing) -> Tracker:

@@ -81,9 +81,9 @@ class AirborneParams(NamedTuple):
 
 
 def _chunk(structure: AirborneStructure):
-    trackers = [t.build(structure.timing) for t in structure.trackers]
-
     def local(params: AirborneParams, keys, live, exclude):
+        # built while the program is traced, in its precision (their constants are float64 in a float64 run)
+        trackers = [t.build(structure.timing) for t in structure.trackers]
         cfg = LoopConfig(structure.timing, structure.periods, params.k, params.sigma, tuple(params.limits),
                          params.acquisition, structure.jolt_tick, params.jolt, structure.singer, params.singer_phi,
                          params.singer_L)

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import jax
+
 from tracklab.config.airborne import parse_airborne
 from tracklab.config.fields import MAX_RUN_STEPS, MAX_RUNS, MAX_STEPS, read_toml
 from tracklab.config.servo import parse_servo
@@ -25,11 +27,12 @@ __all__ = ["MAX_RUNS", "MAX_RUN_STEPS", "MAX_STEPS", "load_experiment", "parse_e
 def parse_experiment(path, raw: dict):
     """Validate an experiment file's contents ``raw`` (its TOML as a dictionary) read from ``path``."""
     path = Path(path)
-    if isinstance(raw, dict) and "servo" in raw:
-        return parse_servo(path, raw)
-    if isinstance(raw, dict) and "airborne" in raw:
-        return parse_airborne(path, raw)
-    return parse_tracking(path, raw)
+    with jax.enable_x64(True):  # a number the parsers compute is float64 whatever JAX's global mode
+        if isinstance(raw, dict) and "servo" in raw:
+            return parse_servo(path, raw)
+        if isinstance(raw, dict) and "airborne" in raw:
+            return parse_airborne(path, raw)
+        return parse_tracking(path, raw)
 
 
 def load_experiment(path):

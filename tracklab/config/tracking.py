@@ -6,6 +6,7 @@ Relative paths are resolved against the experiment file's folder.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -13,17 +14,22 @@ import numpy as np
 
 from tracklab.config.fields import (MAX_RUN_STEPS, MAX_RUNS, MAX_STEPS, NAME_RE, WINDOW_NAME_RE, Section,
                                     check_sections, experiment_header)
+from tracklab.config import factories
+from tracklab.config.factories import is_factory
 from tracklab.config.studies import parse_studies
 from tracklab.errors import ConfigError
 from tracklab.experiments.tracking import Experiment, FilterConfig
 from tracklab.filters.fusion import view_of as _view
+from tracklab.filters.context import filter_context
+from tracklab.filters.core import Filter
 from tracklab.filters.kind import Entry
 from tracklab.filters.registry import KINDS
 from tracklab.metrics import REPORT_WINDOW
-from tracklab.scenarios import (ConstantVelocity, Crossing, MountFrame, Overflight, Sine, Trajectory, TrajectoryError,
-                                 read_csv)
-from tracklab.sensors import SENSOR_KINDS, SENSOR_SIGMAS, Sensor, SensorSuite
+from tracklab.scenarios import (SCENARIO_KINDS, ConstantVelocity, Crossing, Generated, Manoeuvre, MountFrame, Overflight, Sine,
+                                 Trajectory, TrajectoryError, read_csv)
+from tracklab.sensors import SENSOR_KINDS, SENSOR_SIGMAS, CustomSensor, Sensor, SensorSuite
 from tracklab.toml_fields import MAX_MAGNITUDE, sigma_list as _sigma_list
+from tracklab.worlds.tracking import FilterSpec
 
 SENSOR_DIM = {"polar": 2, "spherical": 3, "angles": 3, "mount": 3}  # dimension of the truth they observe
 
@@ -48,7 +54,10 @@ def _parse_sensors(f, raw):
     out = []
     for where, table in _sensor_tables(f, raw):
         sn = Section(f, where, table)
-        kind = sn.string("kind", required=True, choices=tuple(SENSOR_KINDS))
+        kind = sn.string("kind", required=True)
+        if kind not in SENSOR_KINDS and not is_factory(kind):
+            raise ConfigError(f, f"{where}.kind", kind,
+                              f"must be one of {', '.join(SENSOR_KINDS)}, or \"package.module:factory\" (a sensor of one's own)")
         out.append((where, sn, kind))
     return out
 
@@ -56,24 +65,19 @@ def _parse_sensors(f, raw):
 def _build_sensors(f, parsed, dim, dt, steps):
     sensors, names = [], set()
     for where, sn, kind in parsed:
-        name = sn.string("name", kind)
+        name = sn.string("name", kind.rpartition(":")[2])  # default: the kind (a factory: its name)
         if not NAME_RE.fullmatch(name):
             raise ConfigError(f, f"{where}.name", name, "must be 1-100 characters of letters, digits, '_', '.', '-'")
         if name in names:
             raise ConfigError(f, f"{where}.name", name, "must be unique among the sensors")
         names.add(name)
+        if is_factory(kind):
+            sensors.append(_own_sensor(f, where, sn, kind, name, dim, dt, steps))
+            continue
         if SENSOR_DIM.get(kind, dim) != dim:
             hint = " (set scenario.altitude for a 3-D crossing)" if SENSOR_DIM[kind] == 3 else " (remove scenario.altitude, or use a 3-D sensor)"
             raise ConfigError(f, f"{where}.kind", kind, f"observes {SENSOR_DIM[kind]}-D positions but the scenario is {dim}-D{hint}")
-        p_detect = sn.number("p_detect", 1.0)
-        if not 0.0 < p_detect <= 1.0:
-            raise ConfigError(f, f"{where}.p_detect", p_detect, "must be a probability in (0, 1]")
-        period = sn.number("period", dt, positive=True)
-        if not _multiple_of(period, dt, zero=False):
-            raise ConfigError(f, f"{where}.period", period, f"must be a whole multiple (1, 2, …) of experiment.dt = {dt}")
-        offset = sn.number("offset", 0.0, nonneg=True)
-        if not _multiple_of(offset, dt):
-            raise ConfigError(f, f"{where}.offset", offset, f"must be a whole multiple (0, 1, …) of experiment.dt = {dt}")
+        p_detect, period, offset = _timing(f, where, sn, dt)
         if kind == "cartesian":
             sigma = _sigma_list(f, f"{where}.sigma", sn.get("sigma"), dim)
         else:
@@ -85,6 +89,112 @@ def _build_sensors(f, parsed, dim, dt, steps):
             raise ConfigError(f, f"{where}.offset", offset, f"the sensor reports at no step: the run ends at {steps * dt:g} s")
         sensors.append(sensor)
     return SensorSuite(tuple(sensors))
+
+
+def _timing(f, where, sn, dt):
+    """A sensor's p_detect, period and offset fields."""
+    p_detect = sn.number("p_detect", 1.0)
+    if not 0.0 < p_detect <= 1.0:
+        raise ConfigError(f, f"{where}.p_detect", p_detect, "must be a probability in (0, 1]")
+    period = sn.number("period", dt, positive=True)
+    if not _multiple_of(period, dt, zero=False):
+        raise ConfigError(f, f"{where}.period", period, f"must be a whole multiple (1, 2, …) of experiment.dt = {dt}")
+    offset = sn.number("offset", 0.0, nonneg=True)
+    if not _multiple_of(offset, dt):
+        raise ConfigError(f, f"{where}.offset", offset, f"must be a whole multiple (0, 1, …) of experiment.dt = {dt}")
+    return p_detect, period, offset
+
+
+def _own_sensor(f, where, sn, kind, name, dim, dt, steps):
+    """A [sensor] whose kind names a factory: ``factory(Context(dt, steps, dim), **other keys)``
+    returns a sensor (``tracklab.sensors.CustomSensor``, or a built-in ``Sensor``); the table's
+    name, p_detect, period and offset apply to it."""
+    p_detect, period, offset = _timing(f, where, sn, dt)
+    options = {k: sn.get(k) for k in sn.table if k not in ("kind", "name", "p_detect", "period", "offset")}
+    sensor = factories.build(f, f"{where}.kind", kind, factories.Context(dt, steps, dim), options)
+    if not isinstance(sensor, (Sensor, CustomSensor)):
+        raise ConfigError(f, f"{where}.kind", kind, f"the factory returned {type(sensor).__name__}: expected a "
+                          "tracklab.sensors.CustomSensor(h, R, angles=…) or Sensor")
+    if sensor.dim != dim:
+        raise ConfigError(f, f"{where}.kind", kind, f"the factory's sensor observes {sensor.dim}-D positions, the scenario is {dim}-D")
+    sensor = dataclasses.replace(sensor, name=name, dt=dt, period=period, offset=offset, p_detect=p_detect, misses=None)
+    why = sensor.problem() if isinstance(sensor, CustomSensor) else None
+    if why:
+        raise ConfigError(f, f"{where}.kind", kind, f"the factory's sensor: {why}")
+    if not sensor.report_mask(steps).any():
+        raise ConfigError(f, f"{where}.offset", offset, f"the sensor reports at no step: the run ends at {steps * dt:g} s")
+    return sensor
+
+
+def _own_scenario(f, sc, kind, dt, steps, dim):
+    """A [scenario] whose kind names a factory: ``factory(Context(dt, steps, dim), **other keys)``
+    returns a scenario, or a function of a run's key giving its truth (steps + 1, 2·dim)."""
+    options = {k: sc.get(k) for k in sc.table if k != "kind"}
+    made = factories.build(f, "scenario.kind", kind, factories.Context(dt, steps, dim), options)
+    if callable(made) and not hasattr(made, "simulate"):
+        made = _generated(f, kind, made, dt, steps)
+    if not hasattr(made, "simulate") or not hasattr(made, "dim"):
+        raise ConfigError(f, "scenario.kind", kind, f"the factory returned {type(made).__name__}: expected a scenario "
+                          "or a function of a run's key giving its truth (steps + 1, 2·dim)")
+    if getattr(made, "dt", None) != dt or getattr(made, "steps", None) != steps:
+        raise ConfigError(f, "scenario.kind", kind, f"the factory's scenario has dt = {getattr(made, 'dt', None)}, "
+                          f"steps = {getattr(made, 'steps', None)}: the experiment has {dt}, {steps}")
+    why = made.problem() if hasattr(made, "problem") else None
+    if why:
+        raise ConfigError(f, "scenario.kind", kind, f"the factory's scenario: {why}")
+    return made
+
+
+def _generated(f, kind, fn, dt, steps):
+    """A truth function as a ``Generated`` scenario, its dimension read from its output's shape."""
+    import jax
+
+    try:
+        with jax.enable_x64(True):
+            shape = jax.eval_shape(fn, jax.random.key(0)).shape
+    except Exception as e:  # noqa: BLE001 - the user's function, any error
+        raise ConfigError(f, "scenario.kind", kind, f"the factory's truth(key) fails: {factories.first_line(e)}") from None
+    if len(shape) != 2 or shape[1] not in (2, 4, 6):
+        raise ConfigError(f, "scenario.kind", kind, f"the factory's truth(key) gives shape {shape}: expected "
+                          f"({steps + 1}, 2·dim) rows of [x, ẋ, y, ẏ(, z, ż)]")
+    return Generated(fn, dt=dt, steps=steps, dim=shape[1] // 2)
+
+
+def _numbers(f, field, v, counts):
+    if (not isinstance(v, list) or len(v) not in counts
+            or any(isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) or abs(x) > MAX_MAGNITUDE
+                   for x in v)):
+        return None
+    return tuple(float(x) for x in v)
+
+
+def _manoeuvre(f, sc, dt, steps, sensor_dim):
+    """[scenario] kind = "manoeuvre": ``initial`` [x, vx, y, vy(, z, vz)] and ``segments``, a list of
+    tables {duration (s), turn_g (g, + left), accel (m/s², along the velocity)}."""
+    init = _numbers(f, "scenario.initial", sc.get("initial"), (4, 6))
+    if init is None:
+        raise ConfigError(f, "scenario.initial", sc.get("initial"), "must be 4 or 6 finite numbers [x, vx, y, vy(, z, vz)]")
+    dim = len(init) // 2
+    if sensor_dim is not None and dim != sensor_dim:
+        raise ConfigError(f, "scenario.initial", list(init), f"is {dim}-D: the sensors observe {sensor_dim}-D positions")
+    speed = math.hypot(*init[1::2])
+    if math.hypot(init[1], init[3]) <= 0:
+        raise ConfigError(f, "scenario.initial", list(init), "needs a horizontal velocity (vx, vy) other than zero")
+    table = sc.get("segments", [])
+    if not isinstance(table, list):
+        raise ConfigError(f, "scenario.segments", table, "must be a list of tables {duration, turn_g, accel}")
+    segments = []
+    for j, seg in enumerate(table, start=1):
+        ss = Section(f, f"scenario.segments[{j}]", seg)
+        duration = ss.number("duration", required=True, positive=True)
+        turn_g = ss.number("turn_g", 0.0, lo=-100.0, hi=100.0)
+        accel = ss.number("accel", 0.0, lo=-1000.0, hi=1000.0)
+        ss.check_unknown()
+        speed += accel * duration  # a turn is perpendicular to the velocity: only accel changes the speed
+        if speed <= 0:
+            raise ConfigError(f, f"scenario.segments[{j}].accel", accel, "brings the speed to zero or below: the target must keep moving")
+        segments.append((duration, turn_g, accel))
+    return Manoeuvre(dt=dt, steps=steps, initial=init, segments=tuple(segments))
 
 
 def parse_tracking(path: Path, raw: dict) -> Experiment:
@@ -112,8 +222,15 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
         raise ConfigError(f, "[[sensor]]", "...", "all sensors must observe positions of the same dimension")
 
     sc = Section(f, "scenario", raw["scenario"])
-    kind = sc.string("kind", required=True, choices=("crossing", "constant_velocity", "trajectory", "overflight", "sine"))
-    if kind == "sine":
+    kind = sc.string("kind", required=True)
+    if kind not in SCENARIO_KINDS and not is_factory(kind):
+        raise ConfigError(f, "scenario.kind", kind,
+                          f"must be one of {', '.join(SCENARIO_KINDS)}, or \"package.module:factory\" (a truth of one's own)")
+    if is_factory(kind):
+        scenario = _own_scenario(f, sc, kind, dt, steps, sensor_dim)
+    elif kind == "manoeuvre":
+        scenario = _manoeuvre(f, sc, dt, steps, sensor_dim)
+    elif kind == "sine":
         scenario = Sine(dt=dt, steps=steps, amplitude=sc.number("amplitude", 83.33, positive=True),
                         omega=sc.number("omega", 0.6, positive=True), phase=sc.number("phase", 0.0))
     elif kind == "overflight":
@@ -191,7 +308,7 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
     filters, labels = [], set()
     default_q = getattr(getattr(scenario, "scenario", scenario), "accel_sigma", 1.0)
     for i, table in enumerate(flist, start=1):
-        fc = _parse_filter(f, i, table, suite, dim, dt, default_q)
+        fc = _parse_filter(f, i, table, suite, dim, dt, default_q, scenario)
         if fc.label in labels:
             raise ConfigError(f, f"filter[{i}].label", fc.label, "must be unique among the filters")
         labels.add(fc.label)
@@ -256,11 +373,44 @@ def _pred_windows(f, table, window, steps, dt):
     return {REPORT_WINDOW: report} | out
 
 
-def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q) -> FilterConfig:
+def _seen(f, where, fs, suite):
+    """The sensor names a filter's ``sensors`` field gives (default: all)."""
+    all_names = tuple(s.name for s in suite.sensors)
+    names = fs.get("sensors", list(all_names))
+    if not isinstance(names, list) or not names or any(not isinstance(n, str) or n not in all_names for n in names):
+        raise ConfigError(f, f"{where}.sensors", names, f"must be a list of sensor names from: {', '.join(all_names)}")
+    return tuple(dict.fromkeys(names))
+
+
+def _own_filter(f, i, fs, spec, suite, scenario, default_q):
+    """A [[filter]] whose kind names a factory: ``factory(FilterContext, **the table's other keys)``
+    returns a ``Filter`` (its ``layout`` saying where position and velocity sit in its state)."""
+    label = fs.label("label", spec.rpartition(":")[2])
+    names = _seen(f, f"filter[{i}]", fs, suite)
+    options = {k: fs.get(k) for k in fs.table if k not in ("kind", "label", "sensors")}
+    context = filter_context(scenario, suite.subset(names))
+    flt = factories.build(f, f"filter[{i}].kind", spec, context, options)
+    if not isinstance(flt, Filter):
+        raise ConfigError(f, f"filter[{i}].kind", spec, f"the factory returned {type(flt).__name__}: expected a "
+                          "tracklab.filters.Filter(init, step, params)")
+    own = FilterSpec(label, flt, kind=spec, sensors=names if names != tuple(s.name for s in suite.sensors) else ())
+    why = own.problem(scenario, suite)
+    if why:
+        raise ConfigError(f, f"filter[{i}].kind", spec, f"the factory's filter {why}")
+    return own
+
+
+def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q, scenario=None) -> FilterConfig:
     """One [[filter]] table: its kind, label and what it sees (the sensors, a guide, a fusion), checked
     against the sensor kinds the kind accepts; then the kind's own fields (its declaration's ``read``)."""
     fs = Section(f, f"filter[{i}]", table)
-    kind = KINDS[fs.string("kind", required=True, choices=tuple(KINDS))]
+    name = fs.string("kind", required=True)
+    if is_factory(name):
+        return _own_filter(f, i, fs, name, suite, scenario, default_q)
+    if name not in KINDS:
+        raise ConfigError(f, f"filter[{i}].kind", name,
+                          f"must be one of {', '.join(KINDS)}, or \"package.module:factory\" (a filter of one's own)")
+    kind = KINDS[name]
     label = fs.label("label", kind.name)
 
     # what the filter sees

@@ -33,7 +33,7 @@ class FilterConfig:
 class Experiment:
     """A validated experiment: everything ``tracklab run`` needs."""
 
-    path: Path
+    path: Path | None  # the experiment file; None: built in Python (tracklab.experiment)
     name: str
     runs: int
     seed: int
@@ -42,7 +42,7 @@ class Experiment:
     chunk: int | None
     scenario: Any
     sensor: SensorSuite
-    filters: list[FilterConfig]
+    filters: list  # FilterConfig (a built-in kind) or FilterSpec (a filter of one's own)
     prior: dict[str, float]
     window: tuple[int, int]
     raw: dict
@@ -59,10 +59,13 @@ class Experiment:
         d = self.dim
         return np.diag([self.prior["pos_sigma"] ** 2, self.prior["vel_sigma"] ** 2] * d)
 
-    def declared(self, fc: FilterConfig):
-        """A [[filter]] as the tracking world's structure holds it."""
+    def declared(self, fc):
+        """A filter as the tracking world's structure holds it: a built-in [[filter]] as its
+        declaration, a user's own ``FilterSpec`` as it is."""
         from tracklab.worlds.tracking import DeclaredFilter, hashable
 
+        if not isinstance(fc, FilterConfig):
+            return fc
         return DeclaredFilter(fc.label, fc.kind, fc.model, hashable(fc.options), tuple(fc.sensors), fc.fusion)
 
     def view(self, fc: FilterConfig):
@@ -82,8 +85,16 @@ class Experiment:
         """Every number of the experiment, as the compiled program's argument."""
         from tracklab.worlds.tracking import TrackingParams
 
-        filters = [{k: np.asarray(v, float) for k, v in fc.params.items()} for fc in self.filters]
+        filters = [{k: np.asarray(v, float) for k, v in fc.params.items()} if isinstance(fc, FilterConfig)
+                   else fc.filter.params for fc in self.filters]
         return TrackingParams(self.scenario, self.sensor, self.prior_covariance(), self.prior["acc_sigma"] ** 2, filters)
+
+    def ran_with(self) -> dict:
+        """Each filter's parameters as it runs: label -> {leaf name: value} (``pytree.named_leaves``)."""
+        from tracklab.pytree import named_leaves
+
+        return {fc.label: {n: np.asarray(v, float) for n, v in named_leaves(p).items()}
+                for fc, p in zip(self.filters, self.params().filters)}
 
     def filter_specs(self):
         """The experiment's filters built with its numbers, as ``FilterSpec``s: to run one on
@@ -95,9 +106,12 @@ class Experiment:
         structure, params = self.structure(), self.params()
         specs = []
         for f, p in zip(structure.filters, params.filters):
+            if isinstance(f, FilterSpec):
+                specs.append(f)
+                continue
             p = {k: jnp.asarray(v) for k, v in p.items()}
             r = f.realise(params.scenario, params.sensor, p, params.prior_extra_var)
-            specs.append(FilterSpec(f.label, f.kind, r.filter, r.model, r.prior_extra_var, r.view))
+            specs.append(FilterSpec(f.label, r.filter, f.kind, f.sensors, r.model, r.view, r.prior_extra_var))
         return specs
 
     # what a sweep plots: (summary key, title)
@@ -112,7 +126,8 @@ class Experiment:
     def scaled(self, params, factors: dict):
         """``params`` with every filter's parameters named in ``factors`` multiplied by them."""
         return params._replace(filters=[{k: (v * factors[k] if k in factors and scales(fc.kind, p, k) else v)
-                                         for k, v in p.items()} for fc, p in zip(self.filters, params.filters)])
+                                         for k, v in p.items()} if isinstance(fc, FilterConfig) else p
+                                        for fc, p in zip(self.filters, params.filters)])
 
     def summarise(self, structure, params, sums, out) -> dict:
         """The statistics document of one parameter set's sums (the runner's ``out``)."""
@@ -141,7 +156,7 @@ class Experiment:
     def check_memory(self, runs=None, limit=None):
         from tracklab.memory import check
 
-        check(self.path, self.memory_bytes(runs), limit, f"a chunk of runs x {self.steps} steps",
+        check(self.path or "tracklab.experiment", self.memory_bytes(runs), limit, f"a chunk of runs x {self.steps} steps",
               "set a smaller experiment.chunk, or fewer experiment.steps")
 
     def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None, max_memory=None):

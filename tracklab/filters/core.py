@@ -30,7 +30,12 @@ class Prior(NamedTuple):
 
 
 class Meas(NamedTuple):
-    """One measurement: value, time and validity (False = missed detection).
+    """One measurement: value, time and validity.
+
+    An absent component (a missed detection, a sensor with no report at this step) is NaN in
+    ``z``; ``valid`` is True whenever the step is run with a measurement vector (the engine and
+    ``run_filter`` always pass True), so a filter tells what is there from ``z``'s finite
+    components (``masked_meas``) or from ``present``.
 
     ``present`` (optional, one flag per component) says which components are
     there when that is known without looking at ``z``: the engine passes the
@@ -49,33 +54,46 @@ class Meas(NamedTuple):
 class Out(NamedTuple):
     """What a filter reports after each step.
 
-    ``x``/``P`` are the filtered mean and covariance in the reporting frame
-    (Cartesian, in the layout of the filter's motion model); ``x_pred`` is the
-    one-step prediction in the same frame; ``nu``/``S`` are the innovation and
-    its covariance in the filter's measurement space (components not used are
-    zero in ``nu`` and decoupled with unit variance in ``S``); ``valid`` says
-    whether an update happened and ``dof`` how many innovation components it used.
-    ``aux`` holds what a filter family adds (the strong tracking filter's fading
-    factor, an IMM's mode probabilities); ``None`` for the others.
+    Required: ``x``/``P``, the filtered mean and covariance of the filter's state (the
+    engine reads position and velocity through the filter's ``layout``). Optional (None:
+    the statistics that need them are empty, never wrong):
+
+    * ``x_pred``: the one-step prediction of the state, made before this step's
+      measurement (the one-step prediction error);
+    * ``nu``/``S``: the innovation and its covariance in the filter's measurement space
+      (NIS); components not used are zero in ``nu`` and decoupled with unit variance in ``S``;
+    * ``valid``: whether an update happened (default: True when ``nu`` is given);
+    * ``dof``: how many innovation components it used (default: the length of ``nu``);
+    * ``aux``: what a filter family adds (the strong tracking filter's fading factor, an
+      IMM's mode probabilities).
     """
 
     x: jax.Array
     P: jax.Array
-    x_pred: jax.Array
-    nu: jax.Array
-    S: jax.Array
-    valid: jax.Array
-    dof: jax.Array
+    x_pred: jax.Array | None = None
+    nu: jax.Array | None = None
+    S: jax.Array | None = None
+    valid: jax.Array | None = None
+    dof: jax.Array | None = None
     aux: Any = None
 
 
 class Filter(NamedTuple):
+    """A filter: ``init(params, prior) -> state`` and ``step(params, state, meas) -> (state, Out)``.
+
+    ``params`` is the default parameter pytree (what ``jax.grad`` and optax see). ``coast``
+    (optional) is the step when no measurement is present, equal to ``step`` with an absent
+    measurement but cheaper. ``layout`` (optional, a ``tracklab.models.Layout``) says where
+    position and velocity sit in the state; None: the interleaved layout [x, ẋ, y, ẏ(, z, ż)].
+    The prior handed to ``init`` is in that layout (other state components: zero mean,
+    the experiment's extra prior variance).
+    """
+
     init: Callable[[Any, Prior], Any]
     step: Callable[[Any, Any, Meas], tuple[Any, Out]]
     params: Any
-    # coast(params, state, meas) -> (state, out): the step when no measurement is present
-    # (equal to ``step`` with an absent measurement, cheaper); optional
     coast: Callable[[Any, Any, Meas], tuple[Any, Out]] | None = None
+    layout: Any = None
 
 
 class Gaussian(NamedTuple):
@@ -131,3 +149,38 @@ def masked_meas(meas: Meas):
     """Measurement with NaNs replaced by zeros, and which components are present."""
     present = meas.valid & (jnp.isfinite(meas.z) if meas.present is None else meas.present)
     return jnp.where(present, meas.z, 0.0), present
+
+
+def trace_problem(flt: Filter, n: int, m: int, params=None) -> str | None:
+    """Why ``flt`` cannot run on a state of ``n`` and measurements of ``m`` components (None if it
+    can): ``init`` and ``step`` traced on shapes alone (nothing compiles), their outputs checked
+    against the contract (``Out`` with x (n,), P (n, n), optional x_pred (n,), nu (k,) with
+    S (k, k); a state of the same structure and shapes as ``init``'s)."""
+    params = flt.params if params is None else params
+    f64 = lambda *shape: jax.ShapeDtypeStruct(shape, jnp.float64)  # noqa: E731
+    try:
+        with jax.enable_x64(True):
+            params = jax.tree_util.tree_map(
+                lambda a: jnp.asarray(a, jnp.float64) if jnp.issubdtype(jnp.result_type(a), jnp.floating) else a, params)
+            state = jax.eval_shape(flt.init, params, Prior(f64(n), f64(n, n)))
+            state2, out = jax.eval_shape(flt.step, params, state, Meas(f64(m), f64(), jax.ShapeDtypeStruct((), bool)))
+    except Exception as e:  # noqa: BLE001 - the user's functions, any error
+        lines = str(e).strip().splitlines()
+        return (f"fails when traced with a state of {n} and a measurement of {m} components: "
+                f"{type(e).__name__}: {lines[0] if lines else ''}")
+    if not isinstance(out, Out):
+        return f"step returns {type(out).__name__} as its output: expected tracklab.filters.Out(x, P, …)"
+    shapes = lambda t: jax.tree_util.tree_map(lambda a: a.shape, t)  # noqa: E731
+    if jax.tree_util.tree_structure(state2) != jax.tree_util.tree_structure(state) or shapes(state2) != shapes(state):
+        return f"step returns a state shaped {shapes(state2)}, init gives {shapes(state)}: they must be alike"
+    shape = lambda a: getattr(a, "shape", None)  # noqa: E731
+    if shape(out.x) != (n,) or shape(out.P) != (n, n):
+        return (f"step gives x {shape(out.x)} and P {shape(out.P)}, the layout has n = {n}: "
+                f"expected ({n},) and ({n}, {n}) (set Filter.layout for another state order)")
+    if out.x_pred is not None and shape(out.x_pred) != (n,):
+        return f"step gives x_pred {shape(out.x_pred)}: expected ({n},)"
+    if (out.nu is None) != (out.S is None):
+        return "step gives only one of nu and S: give both (NIS) or neither"
+    if out.nu is not None and (len(shape(out.nu) or ()) != 1 or shape(out.S) != shape(out.nu) * 2):
+        return f"step gives nu {shape(out.nu)} and S {shape(out.S)}: expected (k,) and (k, k)"
+    return None

@@ -237,5 +237,5 @@ CMKF = FilterKind(
     build=lambda model, sensor, params, options: model_cmkf(model, sensor, params, options.get("debias", "plain")))
 SEQUENTIAL_EKF = FilterKind(
     name="sequential_ekf", doc="sequential EKF: angles first, re-linearise, then range",
-    accepts=("polar", "spherical", "angles", "suite"), params=NOISE, read=read_noise,
+    accepts=("polar", "spherical", "angles", "custom", "suite"), params=NOISE, read=read_noise,
     build=lambda model, sensor, params, options: model_sequential_ekf(model, sensor, params))

@@ -125,6 +125,31 @@ nonnegative = Constraint(f"[0, {MAX_MAGNITUDE:g}]", lambda v: (v >= 0) & (v <= M
 probabilities = Constraint("[0, 1], summing to 1", lambda v: (v >= 0) & (v <= 1))
 
 
+def bounded(lo: float, hi: float) -> Constraint:
+    """(lo, hi), tuned as lo + (hi − lo)·σ(u), σ the logistic."""
+    lo, hi = float(lo), float(hi)
+    width = hi - lo
+    return Constraint(f"({lo:g}, {hi:g})", lambda v: (v > lo) & (v < hi),
+                      to_free=lambda v: jax.scipy.special.logit((v - lo) / width),
+                      from_free=lambda u: lo + width * jax.nn.sigmoid(u), scalable=False)
+
+
+def constraint_of(spec) -> Constraint:
+    """A constraint a user names for a parameter of their own filter: "positive" (logarithm),
+    "unit" (in (0, 1), logit), "free" (as it is), or (lo, hi) (bounded, scaled logit).
+    ``ValueError`` in one line for anything else."""
+    named = {"positive": positive, "unit": bounded(0.0, 1.0), "free": free}
+    if isinstance(spec, str) and spec in named:
+        return named[spec]
+    if isinstance(spec, Constraint) and spec.tunable and not spec.members:
+        return spec
+    if (isinstance(spec, (tuple, list)) and len(spec) == 2
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in spec)
+            and spec[0] < spec[1]):
+        return bounded(*spec)
+    raise ValueError(f"constraint {spec!r}: must be \"positive\", \"unit\" (in (0, 1)), \"free\" or (lo, hi) with lo < hi")
+
+
 def interval(lo, hi) -> Constraint:
     """[lo, hi], fixed by the file."""
     return Constraint(f"[{lo:g}, {hi:g}]", lambda v: (v >= lo) & (v <= hi))
@@ -290,7 +315,7 @@ class Entry:
             if any(self.has(k) for k in self.sigma_fields):
                 raise self.error("r", self.get("r"), f"give either r or {'/'.join(self.sigma_fields)}, not both")
             return self.sigmas("r", meas.m)  # variances, checked like sigmas
-        if meas.kind == "suite":
+        if meas.kind in ("suite", "custom"):  # a custom sensor: the diagonal of its R
             return tuple(v**2 for v in meas.sigma)
         if meas.kind == "cartesian":
             return tuple(v**2 for v in (self.sigmas("sigma", self.dim, required=False) or meas.sigma))
@@ -299,7 +324,7 @@ class Entry:
 
 # ------------------------------------------------------------------ what most kinds share
 
-ANY_SENSOR = ("polar", "spherical", "angles", "cartesian", "mount", "suite")  # "suite": several sensors
+ANY_SENSOR = ("polar", "spherical", "angles", "cartesian", "mount", "custom", "suite")  # "suite": several sensors
 
 PROCESS_NOISE = Param("process-noise variance: σ² of accel_sigma (cv) or accel_increment_sigma (ca); "
                       "default the scenario's", positive, "(m/s²)²", tune=True, sweep=True, write=write_q)

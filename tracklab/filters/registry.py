@@ -35,7 +35,7 @@ def _names(chosen) -> tuple[str, ...]:
 
 def scales(kind: str, params: dict, name) -> bool:
     """Whether a scale-factor sweep of ``name`` multiplies that parameter of a filter of ``kind``."""
-    return name in params and KINDS[kind].params[name].sweep
+    return kind in KINDS and name in params and KINDS[kind].params[name].sweep
 
 
 TUNABLE = _names(lambda p: p.tune)  # what `tracklab tune --params` may name
@@ -44,4 +44,4 @@ SCALABLE = _names(lambda p: p.sweep)  # what `tracklab sweep --grid` may scale
 
 def tunes(kind: str, params: dict, name) -> bool:
     """Whether a filter of ``kind`` with ``params`` has the parameter ``name``, tunable."""
-    return name in params and KINDS[kind].params[name].tune
+    return kind in KINDS and name in params and KINDS[kind].params[name].tune

@@ -19,6 +19,8 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
+from tracklab.models.layout import Layout
+
 
 class Kinematic(NamedTuple):
     """A linear motion model: x_{k+1} = F x_k + G w_k, w_k ~ N(0, q I)."""
@@ -46,20 +48,16 @@ class Kinematic(NamedTuple):
         q = jnp.broadcast_to(jnp.asarray(q), (self.dim,))
         return (self.G * q) @ self.G.T
 
+    @property
+    def layout(self) -> Layout:
+        return Layout(self.n, self.pos_idx, self.vel_idx)
+
     def embed(self, x_cv, P_cv, extra_var=0.0):
         """Place a CV-layout prior [x, ẋ, y, ẏ, ...] into this model's state.
 
         Higher derivatives (CA acceleration) get zero mean and variance ``extra_var``.
         """
-        n = self.n
-        idx = np.array([a * self.order + j for a in range(self.dim) for j in (0, 1)])
-        x = jnp.zeros(x_cv.shape[:-1] + (n,), x_cv.dtype).at[..., idx].set(x_cv)
-        P = jnp.zeros(P_cv.shape[:-2] + (n, n), P_cv.dtype)
-        P = P.at[..., idx[:, None], idx[None, :]].set(P_cv)
-        if self.order > 2:
-            acc = np.array([a * self.order + 2 for a in range(self.dim)])
-            P = P.at[..., acc, acc].set(extra_var)
-        return x, P
+        return self.layout.embed(x_cv, P_cv, extra_var)
 
 
 def _block(per_axis_F, per_axis_G, dim):

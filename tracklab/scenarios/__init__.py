@@ -1,6 +1,8 @@
 """Truth generators: ``simulate(key) -> (steps + 1, 2·dim)`` in CV layout."""
 
 from tracklab.scenarios.constant_velocity import ConstantVelocity, Crossing
+from tracklab.scenarios.generated import Generated
+from tracklab.scenarios.manoeuvre import Manoeuvre
 from tracklab.scenarios.mount_frame import MountFrame, mount_angles
 from tracklab.scenarios.overflight import Overflight
 from tracklab.scenarios.sine import Sine
@@ -12,9 +14,10 @@ SCENARIO_KINDS = {
     "trajectory": "truth from a CSV file with columns t,x,y,z (s, m)",
     "overflight": "straight level pass over the site: altitude, speed, max_elevation (deg), t_closest (paper 004)",
     "sine": "one angle, A sin(omega t + phase): amplitude (deg), omega (rad/s) (paper 003's equivalent target)",
+    "manoeuvre": "straight legs, N-g coordinated turns, longitudinal accelerations: initial, segments (2-D or 3-D)",
 }
 
 __all__ = [
-    "SCENARIO_KINDS", "ConstantVelocity", "Crossing", "MountFrame", "Overflight", "Sine", "Trajectory", "TrajectoryError",
+    "SCENARIO_KINDS", "ConstantVelocity", "Crossing", "Generated", "Manoeuvre", "MountFrame", "Overflight", "Sine", "Trajectory", "TrajectoryError",
     "mount_angles", "read_csv",
 ]

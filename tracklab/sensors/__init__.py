@@ -1,6 +1,7 @@
 """Sensors: measurement geometry, noise, timing, detection, converted measurements."""
 
 from tracklab.sensors.conversion import CONVERSIONS
+from tracklab.sensors.custom import CustomSensor
 from tracklab.sensors.geometry import (
     SENSOR_KINDS,
     SENSOR_SIGMAS,
@@ -14,6 +15,6 @@ from tracklab.sensors.geometry import (
 )
 
 __all__ = [
-    "CONVERSIONS", "SENSOR_KINDS", "SENSOR_SIGMAS", "Sensor", "SensorSuite", "angles_h", "cartesian_h", "epochs", "polar_h",
+    "CONVERSIONS", "CustomSensor", "SENSOR_KINDS", "SENSOR_SIGMAS", "Sensor", "SensorSuite", "angles_h", "cartesian_h", "epochs", "polar_h",
     "spherical_h",
 ]

@@ -139,7 +139,6 @@ def _estimator(case: CaseSpec, frame_dt):
 
 def _chunk(structure: ServoStructure):
     axis = AzimuthAxis(dt=structure.frame_dt / structure.frame_ticks)
-    estimators = [_estimator(c, structure.frame_dt) for c in structure.cases]
 
     def one(params, case, est, est_params, key):
         target = target_function(structure.target, params.target)
@@ -160,6 +159,8 @@ def _chunk(structure: ServoStructure):
         return max_err, random_err, rate, track_ms, rate_ms, r["error"], r["rate_error"]
 
     def local(params: ServoParams, keys, live, exclude):
+        # built while the program is traced, in its precision (their constants are float64 in a float64 run)
+        estimators = [_estimator(c, structure.frame_dt) for c in structure.cases]
         out = {}
         for i, (case, est) in enumerate(zip(structure.cases, estimators)):
             mx, rnd, rate, track_ms, rate_ms, err, rate_err = jax.vmap(

@@ -35,10 +35,10 @@ import numpy as np
 
 from tracklab import random
 from tracklab.filters import build
-from tracklab.filters.core import Filter, Meas, Prior
+from tracklab.filters.core import Filter, Meas, Prior, trace_problem
 from tracklab.filters.fusion import view_of
 from tracklab.linalg import elementwise_products, mahalanobis2, mahalanobis2_logdet, norm, sum_elements
-from tracklab.models import MODELS, Kinematic, cv
+from tracklab.models import MODELS, Kinematic, cv, interleaved
 from tracklab.montecarlo import runner
 from tracklab.sensors import SensorSuite
 
@@ -59,25 +59,58 @@ def _pv_index(m: Kinematic) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class FilterSpec:
-    """A filter built outside an experiment file (a user's own): the filter, its label and its
-    reporting layout. Part of a program's structure by identity: a new object compiles anew."""
+    """A filter of one's own among an experiment's filters: its label and its ``Filter``.
+
+    The filter's ``params`` pytree is an input of the compiled program (``tracklab.tune``
+    may name its leaves); where position and velocity sit in its state is ``layout``, by
+    default the filter's own (``Filter.layout``), else [x, ẋ, y, ẏ(, z, ż)]. It sees the
+    sensors named in ``sensors`` (default all: their measurements concatenated in the
+    experiment's order; a component is NaN when its sensor has no report). ``kind`` is what
+    the tables call it. Part of a program's structure by identity: a new object compiles anew.
+    """
 
     label: str
-    kind: str
     filter: Filter
-    model: Kinematic  # the reporting frame's layout (pos_idx, vel_idx, embed)
-    prior_extra_var: float = 0.0  # prior variance of states beyond position/velocity
-    view: Callable | None = None  # what the filter sees of the sensors' z (T, M) -> (T, m)
+    kind: str = "user"
+    sensors: tuple[str, ...] = ()
+    layout: Any = None  # a Layout (or a motion model); None: the filter's own
+    view: Callable | None = None  # what it sees of the sensors' z (T, M) -> (T, m), when not a selection
+    prior_extra_var: float | None = None  # prior variance of states beyond position/velocity; None: the experiment's
+
+    def report_layout(self, dim: int):
+        return self.layout or self.filter.layout or interleaved(dim)
 
     @property
-    def pv_index(self) -> np.ndarray:
-        return _pv_index(self.model)
+    def params(self):
+        return self.filter.params
+
+    def sees(self, sensor):
+        """(view function or None, measurement model) of what the filter sees of the sensors."""
+        if self.view is not None:
+            return self.view, sensor
+        if self.sensors and tuple(self.sensors) != tuple(s.name for s in sensor.sensors):
+            return view_of(sensor, tuple(self.sensors), None)
+        return None, sensor
 
     def view_for(self, sensor):
-        return self.view
+        return self.sees(sensor)[0]
 
     def realise(self, scenario, sensor, params, extra_var) -> Realised:
-        return Realised(self.filter, self.model, self.view, self.prior_extra_var)
+        extra = extra_var if self.prior_extra_var is None else self.prior_extra_var
+        return Realised(self.filter, self.report_layout(scenario.dim), self.view_for(sensor), extra)
+
+    def problem(self, scenario, sensor) -> str | None:
+        """Why this filter cannot run in an experiment of ``scenario`` and ``sensor`` (None if it
+        can): checked by tracing ``init`` and ``step`` on shapes alone, before anything compiles."""
+        flt = self.filter
+        if not isinstance(flt, Filter) or not callable(flt.init) or not callable(flt.step):
+            return f"is {type(flt).__name__}, not a tracklab Filter(init, step, params)"
+        layout = self.report_layout(scenario.dim)
+        why = layout.check(scenario.dim) if hasattr(layout, "check") else None
+        if why:
+            return f"layout {why}"
+        _, seen = self.sees(sensor)
+        return trace_problem(flt, layout.n, seen.m)
 
 
 @dataclass(frozen=True)
@@ -215,6 +248,31 @@ class _Lane:
     wmask: np.ndarray  # (T, windows)
 
 
+def run_errors(out, truth_k, pv, dtype) -> _RunErrors:
+    """One run's errors at one step from a filter's output ``out`` (an ``Out``), the true state
+    ``truth_k`` (2d,) in CV layout and ``pv``, the indices of [x, ẋ, y, ẏ, …] in its state."""
+    e = out.x[pv] - truth_k  # (2d,) CV layout
+    Pe = out.P[pv[:, None], pv[None, :]]
+    nees = mahalanobis2(Pe, e)  # NaN when P is not positive definite
+    bad = ~jnp.isfinite(nees + sum_elements(out.x))
+    if out.nu is not None and out.S is not None:
+        valid = jnp.asarray(True if out.valid is None else out.valid, bool)
+        dof = jnp.asarray(out.nu.shape[-1] if out.dof is None else out.dof)
+        nis, logdet_s = mahalanobis2_logdet(out.S, out.nu)
+        nis = jnp.where(valid, nis, 0.0)
+        logdet_s = jnp.where(valid, logdet_s, 0.0)
+        bad = bad | (valid & ~jnp.isfinite(nis))
+    else:  # no innovation reported: no NIS (its columns are empty)
+        valid, dof, nis, logdet_s = jnp.asarray(False), 0.0, 0.0, 0.0
+    if out.x_pred is not None:
+        e_pred = out.x_pred[pv[0::2]] - truth_k[0::2]  # one-step prediction error of the position
+    else:  # no prediction reported: its statistics are NaN, shown as missing
+        e_pred = jnp.full((len(pv) // 2,), jnp.nan, dtype)
+    # fixed dtypes, so that the scan's carry is known without tracing the step (_RunErrors.zeros)
+    f = lambda a: jnp.asarray(a, dtype)
+    return _RunErrors(f(e), f(nees), f(nis), valid, f(dof), bad, f(logdet_s), f(e_pred))
+
+
 def _lane(label, real: Realised, params, P0_cv, pattern, detect_all, windows, dtype) -> _Lane:
     """Set up one filter for the chunk's scan (``pattern``: the report pattern (T, m) of what it sees)."""
     flt = real.filter
@@ -236,19 +294,7 @@ def _lane(label, real: Realised, params, P0_cv, pattern, detect_all, windows, dt
             state, out = flt.step(params, state, meas)
         else:  # no sensor reports at this step (between reports): predict only
             state, out = jax.lax.cond(reports_k, flt.step, coast, params, state, meas)
-        e = out.x[pv] - truth_k  # (2d,) CV layout
-        Pe = out.P[pv[:, None], pv[None, :]]
-        nees = mahalanobis2(Pe, e)  # NaN when P is not positive definite
-        nis, logdet_s = mahalanobis2_logdet(out.S, out.nu)
-        nis = jnp.where(out.valid, nis, 0.0)
-        logdet_s = jnp.where(out.valid, logdet_s, 0.0)
-        e_pred = out.x_pred[pv[0::2]] - truth_k[0::2]  # one-step prediction error of the position
-        bad = ~jnp.isfinite(nees + sum_elements(out.x))
-        bad = bad | (out.valid & ~jnp.isfinite(nis))
-        # fixed dtypes, so that the scan's carry is known without tracing the step (_RunErrors.zeros)
-        f = lambda a: jnp.asarray(a, dtype)
-        return state, _RunErrors(f(e), f(nees), f(nis), jnp.asarray(out.valid, bool), f(out.dof), bad, f(logdet_s),
-                                f(e_pred))
+        return state, run_errors(out, truth_k, pv, dtype)
 
     present = jnp.asarray(pattern) if detect_all else None
     return _Lane(label, init, body, real.view, pattern, present, reports, names, wmask)
@@ -528,6 +574,43 @@ def _chunk(structure: TrackingStructure):
     return local
 
 
+def recorded_sums(out, truth, layout, windows: dict | None = None) -> dict:
+    """One filter's per-step sums over recorded runs, as a chunk's scan makes them (named as
+    ``unpack`` names them): ``out`` an ``Out`` of arrays (N, T, …) (``run_filter``'s), ``truth``
+    (N, T, 2·dim) in CV layout at the same steps, ``layout`` where position and velocity sit in
+    the filter's state. A run with a NaN/inf estimate or a covariance that is not positive
+    definite at any step is diverged and left out of every sum, as in a simulation."""
+    pv = _pv_index(layout)
+    truth = jnp.asarray(truth)
+    dtype = truth.dtype
+    N, T = truth.shape[:2]
+    d = len(pv) // 2
+    names = list(windows or {})
+    wmask = jnp.asarray(np.stack([np.asarray(windows[n], bool) for n in names], axis=1) if names
+                        else np.zeros((T, 0), bool))
+    xs = (jax.tree_util.tree_map(lambda a: jnp.swapaxes(jnp.asarray(a), 0, 1), out), jnp.swapaxes(truth, 0, 1), wmask)
+    errors = jax.vmap(lambda o, t: run_errors(o, t, pv, dtype), out_axes=-1)  # over the runs, runs last
+
+    def bad_of(bad_any, inp):
+        return bad_any | errors(inp[0], inp[1]).bad, None
+
+    diverged, _ = jax.lax.scan(bad_of, jnp.zeros((N,), bool), xs)
+
+    def step(runmax, inp):
+        out_k, truth_k, w_k = inp
+        r = errors(out_k, truth_k)
+        sums, maxima, runmax = _lane_sums(r, ~diverged, runmax, w_k, dtype)
+        return runmax, (sums, maxima)
+
+    runmax, (sums, maxima) = jax.lax.scan(step, jnp.zeros((len(names), d + 1, N), dtype), xs)
+    res = _named(sums, _SUMS, d) | _named(maxima, _MAXIMA, d)
+    for j, name in enumerate(names):
+        res[f"runmax_pred@{name}"] = jnp.sum(jnp.where(~diverged, runmax[j], 0.0), axis=-1)
+    res["diverged"] = jnp.sum(diverged.astype(dtype))
+    res["example_x"] = jnp.asarray(out.x)[0][:, pv]
+    return jax.tree_util.tree_map(np.asarray, res)
+
+
 def _window_mean(x, window):
     a, b = window
     return jnp.mean(x[a - 1:b])
@@ -644,6 +727,8 @@ def pcrlb(scenario, P0_cv, info_pos):
 
     J_{k+1} = (Q + F J_k⁻¹ Fᵀ)⁻¹ + E[H̃ᵀ R⁻¹ H̃], the expectation averaged over
     the simulated truths (``info_pos``, (T, dim, dim), position block); J_0 = P0⁻¹.
+    ``F`` is one matrix, or one per step (T, n, n): the Jacobians of a deterministic
+    truth's motion along it, with Q = 0 (the bound of a known, manoeuvring path).
     Returns J⁻¹ per measurement step, or None when the truth has no Gaussian model.
     """
     lg = scenario.linear_gaussian()
@@ -653,9 +738,12 @@ def pcrlb(scenario, P0_cv, info_pos):
     pos = np.arange(scenario.dim) * 2
     Jz = jnp.zeros((len(info_pos),) + P0_cv.shape).at[:, pos[:, None], pos[None, :]].set(jnp.asarray(info_pos))
 
-    def step(Jinv, Jz_k):
-        Jinv = jnp.linalg.inv(jnp.linalg.inv(Q + F @ Jinv @ F.T) + Jz_k)
+    Fs = F if F.ndim == 3 else jnp.broadcast_to(F, (len(info_pos),) + F.shape)
+
+    def step(Jinv, inp):
+        Jz_k, F_k = inp
+        Jinv = jnp.linalg.inv(jnp.linalg.inv(Q + F_k @ Jinv @ F_k.T) + Jz_k)
         return Jinv, Jinv
 
-    _, out = jax.lax.scan(step, jnp.asarray(P0_cv), Jz)
+    _, out = jax.lax.scan(step, jnp.asarray(P0_cv), (Jz, Fs))
     return np.asarray(out)

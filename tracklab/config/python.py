@@ -1,0 +1,171 @@
+"""An open-loop experiment built in Python: ``tracklab.experiment(scenario, sensors, filters)``.
+
+The same experiment an experiment file gives, from objects: a scenario (any of
+``tracklab.scenarios``, or ``Generated`` around a truth function of one's own), sensors
+(``Sensor``, ``CustomSensor``, a ``SensorSuite`` or a list of them) and filters, each a
+built-in kind as the dictionary a ``[[filter]]`` table holds (``{"kind": "ekf",
+"accel_sigma": 2.0}``), a ``FilterConfig`` of a loaded experiment, or a ``FilterSpec``
+around a ``Filter`` of one's own. Everything is checked as a file is, before anything
+compiles; a bad input raises ``ConfigError`` (a ``ValueError``) in one line.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from tracklab.config.fields import MAX_RUN_STEPS, MAX_RUNS, NAME_RE
+from tracklab.config.tracking import _parse_filter, _pred_windows
+from tracklab.errors import ConfigError
+from tracklab.experiments.tracking import Experiment, FilterConfig
+from tracklab.filters.core import Filter
+from tracklab.sensors import SENSOR_KINDS, SENSOR_SIGMAS, CustomSensor, Sensor, SensorSuite
+from tracklab.worlds.tracking import FilterSpec
+
+WHERE = "tracklab.experiment"  # what the one-line errors name in place of a file
+
+
+def _suite(sensors, scenario) -> SensorSuite:
+    if isinstance(sensors, SensorSuite):
+        items = list(sensors.sensors)
+    elif isinstance(sensors, (Sensor, CustomSensor)):
+        items = [sensors]
+    else:
+        items = list(sensors)
+    if not items:
+        raise ConfigError(WHERE, "sensors", sensors, "must name at least one sensor")
+    out, names = [], set()
+    for i, s in enumerate(items):
+        field = f"sensors[{i}]"
+        if not isinstance(s, (Sensor, CustomSensor)):
+            raise ConfigError(WHERE, field, type(s).__name__, "must be a tracklab.sensors.Sensor or CustomSensor")
+        if isinstance(s, Sensor):
+            want = {"polar": 2, "spherical": 3, "angles": 2, "cartesian": s.dim, "mount": 2}.get(s.kind)
+            if want is None:
+                raise ConfigError(WHERE, f"{field}.kind", s.kind, f"must be one of {', '.join(SENSOR_KINDS)} "
+                                  "(a sensor of one's own: tracklab.sensors.CustomSensor(h, R))")
+            if len(s.sigma) != want or not all(np.isfinite(v) and v > 0 for v in s.sigma):
+                raise ConfigError(WHERE, f"{field}.sigma", tuple(s.sigma), f"a {s.kind} sensor needs {want} noise "
+                                  f"standard deviations > 0 ({', '.join(SENSOR_SIGMAS[s.kind])})")
+        frame_dim = scenario.dim
+        if s.dim != frame_dim:
+            raise ConfigError(WHERE, f"{field}.dim", s.dim, f"the scenario's truth is {frame_dim}-D")
+        if s.name in names:
+            raise ConfigError(WHERE, f"{field}.name", s.name, "must be unique among the sensors")
+        names.add(s.name)
+        if s.period > 0 and s.dt != scenario.dt:  # the report epochs are on the scenario's grid
+            s = dataclasses.replace(s, dt=scenario.dt, misses=s.misses)
+        why = s.problem() if isinstance(s, CustomSensor) else None
+        if why:
+            raise ConfigError(WHERE, field, s.name, why)
+        if not s.report_mask(scenario.steps).any():
+            raise ConfigError(WHERE, f"{field}.offset", s.offset, "the sensor reports at no step of the run")
+        out.append(s)
+    return SensorSuite(tuple(out))
+
+
+def _describe(obj):
+    """A scenario or sensor as numbers and names, for stats.json."""
+    if dataclasses.is_dataclass(obj):
+        doc = {"type": type(obj).__name__}
+        for fld in dataclasses.fields(obj):
+            v = getattr(obj, fld.name)
+            if callable(v):
+                v = f"{getattr(v, '__module__', '?')}:{getattr(v, '__qualname__', type(v).__name__)}"
+            elif v is not None and not isinstance(v, (str, bool, int, float, tuple, list)):
+                v = np.asarray(v).tolist()
+            doc[fld.name] = v
+        return doc
+    return {"type": type(obj).__name__}
+
+
+def _filter_table(fc) -> dict:
+    if isinstance(fc, FilterConfig):
+        return {"label": fc.label, "kind": fc.kind, "model": fc.model,
+                **{k: np.asarray(v).tolist() for k, v in fc.params.items()}, **fc.options}
+    layout = fc.report_layout(0) if (fc.layout or fc.filter.layout) else None
+    doc = {"label": fc.label, "kind": fc.kind}
+    if layout is not None and isinstance(layout, tuple):
+        doc["layout"] = {"n": int(layout.n), "pos_idx": list(layout.pos_idx), "vel_idx": list(layout.vel_idx)}
+    if fc.sensors:
+        doc["sensors"] = list(fc.sensors)
+    return doc
+
+
+def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: int = 1000, seed: int = 0,
+               prior: dict | None = None, window: tuple[int, int] | None = None, windows: dict | None = None,
+               chunk: int | None = None, precision: str = "float64") -> Experiment:
+    """An open-loop experiment from Python objects (see the module's doc).
+
+    ``prior``: ``pos_sigma`` (m), ``vel_sigma`` (m/s), ``acc_sigma`` (the prior std of states
+    beyond position and velocity), by default 100, 10, 1. ``window``: the report window
+    (first, last step, both included; default all). ``windows``: named windows of the
+    one-step prediction error, as ``[report.windows]`` in a file.
+    """
+    if not isinstance(name, str) or not NAME_RE.fullmatch(name):
+        raise ConfigError(WHERE, "name", name, "must be 1-100 characters of letters, digits, '_', '.', '-'")
+    for field, v, hi in (("runs", runs, MAX_RUNS), ("seed", seed, 2**32 - 1)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not (field == "seed" or v >= 1) or v > hi or v < 0:
+            raise ConfigError(WHERE, field, v, f"must be an integer in [{0 if field == 'seed' else 1}, {hi}]")
+    if precision not in ("float64", "float32"):
+        raise ConfigError(WHERE, "precision", precision, "must be float64 or float32")
+    if not all(hasattr(scenario, a) for a in ("simulate", "dt", "steps", "dim")):
+        raise ConfigError(WHERE, "scenario", type(scenario).__name__, "must be a tracklab scenario (tracklab.scenarios; "
+                          "Generated(truth, dt=…, steps=…, dim=…) for a truth function of one's own)")
+    why = scenario.problem() if hasattr(scenario, "problem") else None
+    if why:
+        raise ConfigError(WHERE, "scenario", type(scenario).__name__, why)
+    dt, steps, dim = float(scenario.dt), int(scenario.steps), int(scenario.dim)
+    if runs * steps > MAX_RUN_STEPS:
+        raise ConfigError(WHERE, "runs", runs, f"runs x steps must be <= {MAX_RUN_STEPS:.0e}")
+    suite = _suite(sensors, scenario)
+    prior = {"pos_sigma": 100.0, "vel_sigma": 10.0, "acc_sigma": 1.0} | dict(prior or {})
+    for k, v in prior.items():
+        if k not in ("pos_sigma", "vel_sigma", "acc_sigma") or not np.isfinite(v) or v <= 0:
+            raise ConfigError(WHERE, f"prior.{k}", v, "pos_sigma, vel_sigma, acc_sigma: numbers > 0")
+
+    default_q = float(np.asarray(getattr(getattr(scenario, "scenario", scenario), "accel_sigma", 1.0)))
+    entries, labels = [], set()
+    for i, fc in enumerate(filters or [], start=1):
+        where = f"filters[{i - 1}]"
+        if isinstance(fc, dict):
+            fc = _parse_filter(WHERE, i, dict(fc), suite, dim, dt, default_q, scenario)
+        elif isinstance(fc, Filter):
+            raise ConfigError(WHERE, where, "Filter", "give it a label: tracklab.FilterSpec(label, filter)")
+        elif isinstance(fc, FilterSpec):
+            if fc.sensors and any(n not in {s.name for s in suite.sensors} for n in fc.sensors):
+                raise ConfigError(WHERE, f"{where}.sensors", list(fc.sensors),
+                                  f"must name sensors from: {', '.join(s.name for s in suite.sensors)}")
+            why = fc.problem(scenario, suite)
+            if why:
+                raise ConfigError(WHERE, where, fc.label, f"the filter {why}")
+        elif not isinstance(fc, FilterConfig):
+            raise ConfigError(WHERE, where, type(fc).__name__, "must be a FilterSpec, a [[filter]] table as a dict, "
+                              "or a FilterConfig of a loaded experiment")
+        if fc.label in labels:
+            raise ConfigError(WHERE, f"{where}.label", fc.label, "must be unique among the filters")
+        labels.add(fc.label)
+        entries.append(fc)
+    if not entries:
+        raise ConfigError(WHERE, "filters", filters, "must hold at least one filter")
+
+    w = tuple(window) if window is not None else (1, steps)
+    if len(w) != 2 or not all(isinstance(v, (int, np.integer)) for v in w) or not 1 <= w[0] <= w[1] <= steps:
+        raise ConfigError(WHERE, "window", window, f"must be (first, last) steps with 1 <= first <= last <= {steps}")
+    pred_windows = _pred_windows(WHERE, dict(windows or {}), w, steps, dt)
+    raw = {
+        "experiment": {"name": name, "runs": int(runs), "seed": int(seed), "dt": dt, "steps": steps,
+                       "precision": precision, "built": "python"},
+        "scenario": _describe(scenario),
+        "sensor": [_describe(s) for s in suite.sensors],
+        "prior": prior,
+        "filter": [_filter_table(fc) for fc in entries],
+        "report": {"window": list(w), **({"windows": {k: v for k, v in (windows or {}).items()}} if windows else {})},
+    }
+    return Experiment(path=None, name=name, runs=int(runs), seed=int(seed), dt=dt, steps=steps, chunk=chunk,
+                      scenario=scenario, sensor=suite, filters=entries, prior=prior, window=(int(w[0]), int(w[1])),
+                      raw=raw, precision=precision, pred_windows=pred_windows)
+
+
+__all__ = ["experiment"]

@@ -1,0 +1,130 @@
+"""Filters run over recorded measurements, judged against the recorded truth: the same
+statistics, tables and figures as a simulation (``tracklab.evaluate``).
+
+A flight test gives measurements and a reference track (GPS/INS, a theodolite, a
+trajectory file); ``run_filter`` runs each filter over the measurements, and
+``evaluate`` turns its results and the truth into the per-step RMSE, mean error, NEES,
+NIS and one-step prediction error of ``tracklab.metrics``, computed by the same code as a
+simulation's sums (``worlds.tracking.recorded_sums``). Several recordings (N, T, …) are
+N runs; one (T, …) is one run. A truth file in the trajectory format gives the truth at
+the steps: ``Trajectory(path, dt, steps, dim).simulate(None)[1:]``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from tracklab.metrics import REPORT_WINDOW
+from tracklab.models import interleaved
+from tracklab.worlds.tracking import MonteCarloResult, recorded_sums
+
+
+@dataclass
+class Recorded:
+    """What ``evaluate`` judged: filters' results on recorded data, and the truth."""
+
+    name: str
+    dt: float
+    steps: int
+    window: tuple[int, int]
+    pred_windows: dict
+    raw: dict
+    parameters: dict = field(default_factory=dict)  # label -> {name: value}, as given
+    path: Path | None = None
+    sensor = None  # no simulated sensor (the figures draw no measurements)
+
+    def ran_with(self) -> dict:
+        return self.parameters
+
+
+def _batched(a, what, ndim):
+    a = np.asarray(a, float)
+    if a.ndim == ndim:
+        a = a[None]
+    if a.ndim != ndim + 1:
+        raise ValueError(f"evaluate: {what} has shape {np.shape(a)}: expected {ndim} or {ndim + 1} axes")
+    return a
+
+
+def evaluate(results, truth, *, dt: float, name: str = "recorded", window: tuple[int, int] | None = None,
+             windows: dict | None = None, params: dict | None = None, out=None, figures: bool = True) -> dict:
+    """The statistics document (what stats.json holds) of filters' results on recorded
+    measurements against the truth; with ``out``, also the results folder (stats.json,
+    table.md, table.csv, figures), written as ``tracklab run`` writes one. The arguments
+    are those of ``judge``."""
+    from tracklab.output import atomic_folder, check_results_folder
+    from tracklab.report import stats_document, write_results
+
+    recorded, res = judge(results, truth, dt=dt, name=name, window=window, windows=windows, params=params)
+    if out is None:
+        return stats_document(recorded, res)
+    folder = check_results_folder(out, None)
+    with atomic_folder(folder, None) as tmp:
+        return write_results(recorded, res, tmp, figures=figures)
+
+
+def judge(results, truth, *, dt: float, name: str = "recorded", window: tuple[int, int] | None = None,
+          windows: dict | None = None, params: dict | None = None):
+    """Filters' results on recorded measurements against the truth, as a simulation's result.
+
+    ``results``: a ``FilterResult`` (``run_filter``'s) or {label: FilterResult}, all over the
+    same measurements; ``truth``: (T, 2·dim) or (N, T, 2·dim), the true state at each
+    measurement step in CV layout [x, ẋ, y, ẏ(, z, ż)]. ``window`` (first, last step) is the
+    report window, ``windows`` named step masks of the one-step prediction error, ``params``
+    what to record of each filter's parameters. Returns (Recorded, MonteCarloResult), what
+    ``tracklab.report.stats_document`` and ``write_results`` take."""
+    import jax
+
+    from tracklab.filters.core import Out
+
+    if not isinstance(results, dict):
+        results = {"filter": results}
+    truth = _batched(truth, "truth", 2)
+    runs = {np.shape(r.x)[0] if np.ndim(r.x) == 3 else 1 for r in results.values()}
+    if len(runs) != 1:
+        raise ValueError(f"evaluate: the results hold different numbers of recordings: {sorted(runs)}")
+    if truth.shape[0] == 1 and runs != {1}:  # one truth for every recording (a deterministic path)
+        truth = np.broadcast_to(truth, (runs.pop(),) + truth.shape[1:])
+    N, T, n2 = truth.shape
+    if n2 not in (2, 4, 6):
+        raise ValueError(f"evaluate: truth has {n2} columns: expected 2·dim, [x, ẋ, y, ẏ(, z, ż)]")
+    dim = n2 // 2
+    w = tuple(window) if window is not None else (1, T)
+    if not 1 <= w[0] <= w[1] <= T:
+        raise ValueError(f"evaluate: window {window}: expected 1 <= first <= last <= {T}")
+    k = np.arange(1, T + 1)
+    masks = {REPORT_WINDOW: (k >= w[0]) & (k <= w[1])} | {n: np.asarray(m, bool) for n, m in (windows or {}).items()}
+    t0 = time.perf_counter()
+    sums, example_x = {}, {}
+    with jax.enable_x64(True):
+        for label, r in results.items():
+            x = _batched(r.x, f"{label}: x", 2)
+            if x.shape[:2] != (N, T):
+                raise ValueError(f"evaluate: {label}: x has shape {np.shape(r.x)}, the truth {np.shape(truth)}: "
+                                 f"give the truth at each of the T steps, (T, 2·dim) or (N, T, 2·dim)")
+            layout = r.layout or interleaved(dim)
+            why = layout.check(dim) if hasattr(layout, "check") else None
+            if why or layout.n != x.shape[-1]:
+                raise ValueError(f"evaluate: {label}: its state has {x.shape[-1]} components, the truth is {dim}-D: "
+                                 f"{why or 'set the filter layout (tracklab.Layout) of its position and velocity'}")
+            lead = lambda a, nd: None if a is None else _batched(a, label, nd)
+            out = Out(x=x, P=lead(r.P, 3), x_pred=lead(r.x_pred, 2), nu=lead(r.nu, 2), S=lead(r.S, 3),
+                      valid=None if r.valid is None else np.asarray(r.valid).reshape(N, T),
+                      dof=None if r.dof is None else np.asarray(r.dof).reshape(N, T))
+            s = recorded_sums(out, truth, layout, masks)
+            example_x[label] = s.pop("example_x")
+            sums[label] = s
+    kinds = {label: "recorded" for label in results}
+    res = MonteCarloResult(
+        runs=N, steps=T, dt=float(dt), dim=dim, sums=sums, pcrlb=None, wall_s=time.perf_counter() - t0, compile_s=0.0,
+        labels=list(results), kinds=kinds,
+        example={"truth": np.concatenate([np.full((1, n2), np.nan), truth[0]]), "x": example_x},
+        windows=list(masks))
+    raw = {"experiment": {"name": name, "runs": N, "steps": T, "dt": float(dt), "built": "recorded"},
+           "filter": [{"label": label} for label in results], "report": {"window": list(w)}}
+    parameters = {label: {n: np.asarray(v, float) for n, v in (params or {}).get(label, {}).items()} for label in results}
+    return Recorded(name, float(dt), T, w, masks, raw, parameters), res

@@ -1,0 +1,71 @@
+"""The process-wide settings tracklab runs best with, as one call: ``configure()``.
+
+Importing tracklab changes nothing: another JAX program in the same process sees JAX as
+it was. ``tracklab`` (the command) calls ``configure()`` first thing; a Python user calls
+it before anything touches JAX, as the README shows. It sets:
+
+* **One CPU device per core** (``--xla_force_host_platform_device_count``): the
+  Monte-Carlo runner splits every chunk of runs over the devices, each share in its own
+  thread with no synchronisation until the chunk's sums are added, which on the CPU is
+  faster than XLA's splitting of each small kernel over threads.
+* **Single-threaded Eigen kernels** (``--xla_cpu_multi_thread_eigen=false``): with the
+  multi-threaded Eigen pool, long vmapped scans of small matrix products (the airborne
+  trackers) intermittently never finish, every thread idle in the pool.
+* **JAX's 64-bit mode** (``jax_enable_x64``), so that arrays a user builds (a filter's
+  parameters, its constants) are float64 like the engine's.
+
+The XLA flags are read when JAX starts its CPU backend, so they can only be set before
+the first computation; a flag XLA_FLAGS already names is left as it is.
+
+What float64 needs: the runner traces and runs every experiment in the precision asked
+for (``float64`` by default, inside ``jax.enable_x64``), whatever the global mode, and
+casts the parameters to it. Only arrays built outside it follow JAX's global mode: with
+64-bit mode off, ``jnp.asarray(1e-3)`` in a user's filter factory is float32. Call
+``configure()`` (or ``jax.config.update("jax_enable_x64", True)``) before building them.
+"""
+
+from __future__ import annotations
+
+import os
+
+
+def usable_cores() -> int:
+    """The CPU cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def _backend_started() -> bool:
+    try:
+        from jax._src import xla_bridge
+    except ImportError:  # pragma: no cover - JAX moved it
+        return False
+    return bool(xla_bridge.backends_are_initialized())
+
+
+def configure(*, cpu_devices: int | None = None, eigen_threads: bool = False, float64: bool = True) -> dict:
+    """Set the process-wide JAX settings tracklab is measured with (see the module's doc).
+
+    ``cpu_devices``: CPU devices to create (default: one per usable core); ``eigen_threads``:
+    keep XLA's multi-threaded Eigen pool; ``float64``: turn on JAX's 64-bit mode. A flag that
+    XLA_FLAGS already names is kept. Returns the settings in force. Raises ``RuntimeError``
+    when JAX's backend has already started with a different device count (call it first).
+    """
+    flags = os.environ.get("XLA_FLAGS", "")
+    want = []
+    if not eigen_threads and "xla_cpu_multi_thread_eigen" not in flags:
+        want.append("--xla_cpu_multi_thread_eigen=false")
+    if "xla_force_host_platform_device_count" not in flags:
+        want.append(f"--xla_force_host_platform_device_count={int(cpu_devices or usable_cores())}")
+    started = _backend_started()
+    if want and not started:
+        os.environ["XLA_FLAGS"] = " ".join([flags] + want).strip()
+
+    import jax
+
+    if float64:
+        jax.config.update("jax_enable_x64", True)
+    if started and cpu_devices is not None and jax.default_backend() == "cpu" and jax.device_count() != cpu_devices:
+        raise RuntimeError(f"JAX started with {jax.device_count()} CPU devices before tracklab.configure() was "
+                           f"called: call it before any JAX computation to get {cpu_devices}")
+    return {"xla_flags": os.environ.get("XLA_FLAGS", ""), "float64": bool(jax.config.jax_enable_x64),
+            "backend_started": started}
