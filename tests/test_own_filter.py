@@ -120,6 +120,10 @@ def test_recorded_data_give_the_statistics_of_the_simulation(compared, tmp_path)
         keys = [k for k, v in want.items() if isinstance(v, float) and np.isfinite(v) and "pcrlb" not in k]
         _close(want, got, 1e-9, keys)
         assert np.isfinite(got["nis"]) == (label != "x and P only")
+    with pytest.raises(ValueError, match=r"run_filter: z has shape \(200,\)"):
+        tracklab.run_filter(exp.filter_specs()[1].filter, np.zeros(200), x0=x0[0], P0=P0)
+    with pytest.raises(ValueError, match="run_filter: the filter fails when traced .* measurement of 3 components"):
+        tracklab.run_filter(exp.filter_specs()[1].filter, np.zeros((200, 3)), x0=x0[0], P0=P0)
     # one recording is one run
     one = tracklab.evaluate(tracklab.run_filter(exp.filter_specs()[1].filter, z[0], x0=x0[0], P0=P0),
                             np.asarray(truth)[0, 1:], dt=exp.dt)
@@ -364,12 +368,18 @@ def test_a_custom_sensor_measures_as_the_built_in_one_it_copies():
     stats = []
     for sensor in (Sensor("polar", 2, (100.0, 0.003)),
                    CustomSensor(polar_h, np.diag([100.0**2, 0.003**2]), angles=(False, True), dim=2, name="polar")):
-        exp = tracklab.experiment(scenario, sensor, [{"kind": "ekf"}], runs=200, prior={"vel_sigma": 50.0})
+        exp = tracklab.experiment(scenario, sensor, [{"kind": "ekf"}, {"kind": "ukf"}], runs=200,
+                                  prior={"vel_sigma": 50.0})
         res = exp.monte_carlo()
-        stats.append(statistics(res, exp.window)["filters"]["ekf"]["summary"])
+        stats.append(statistics(res, exp.window)["filters"])
         pcrlb = res.pcrlb
-    _close(stats[0], stats[1], 1e-9)
+    for kind in ("ekf", "ukf"):  # the UKF evaluates h on all its sigma points at once
+        _close(stats[0][kind]["summary"], stats[1][kind]["summary"], 1e-9)
     assert np.isfinite(pcrlb).all()
+    with pytest.raises(ValueError, match="a polar sensor needs 2 noise standard deviations"):
+        tracklab.experiment(scenario, Sensor("polar", 2, (100.0,)), [{"kind": "ekf"}])
+    with pytest.raises(ValueError, match="R has shape"):
+        tracklab.experiment(scenario, CustomSensor(polar_h, np.ones(2), dim=2), [{"kind": "ekf"}])
 
 
 def test_the_readme_example_runs_as_written(tmp_path):
@@ -447,3 +457,10 @@ def test_the_manoeuvre_scenario_and_its_bound(tmp_path):
 
     path.write_text(MANOEUVRE.format(segments="[{duration = 30.0, accel = -9.0}]"))
     assert main(["run", str(path), "--out", str(tmp_path / "o")]) == 2
+    from tracklab.scenarios import Manoeuvre
+
+    for segments, why in ((((10.0, 2.0),), r"expected \(duration_s > 0, turn_g, accel\)"),
+                          (((30.0, 0.0, -9.0),), "brings the speed to zero")):
+        with pytest.raises(ValueError, match=why):
+            tracklab.experiment(Manoeuvre(dt=1.0, steps=50, initial=(0.0, 250.0, 1e4, 0.0), segments=segments),
+                                straight.sensor, straight.filters)
