@@ -382,7 +382,7 @@ def _seen(f, where, fs, suite):
     return tuple(dict.fromkeys(names))
 
 
-def _own_filter(f, i, fs, spec, suite, scenario, default_q):
+def _own_filter(f, i, fs, spec, suite, scenario):
     """A [[filter]] whose kind names a factory: ``factory(FilterContext, **the table's other keys)``
     returns a ``Filter`` (its ``layout`` saying where position and velocity sit in its state)."""
     label = fs.label("label", spec.rpartition(":")[2])
@@ -406,7 +406,7 @@ def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q, scenario=
     fs = Section(f, f"filter[{i}]", table)
     name = fs.string("kind", required=True)
     if is_factory(name):
-        return _own_filter(f, i, fs, name, suite, scenario, default_q)
+        return _own_filter(f, i, fs, name, suite, scenario)
     if name not in KINDS:
         raise ConfigError(f, f"filter[{i}].kind", name,
                           f"must be one of {', '.join(KINDS)}, or \"package.module:factory\" (a filter of one's own)")
