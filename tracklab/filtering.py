@@ -45,7 +45,7 @@ def run_filter(flt: Filter, z, *, x0, P0, params=None, dt: float = 1.0, precisio
     if np.ndim(x0) not in (1, 2) or np.shape(P0)[-2:] != (n, n) or np.ndim(P0) not in (2, 3):
         raise ValueError(f"run_filter: x0 {np.shape(x0)} and P0 {np.shape(P0)}: expected (n,) or (N, n), and (n, n) "
                          f"or (N, n, n), in the filter's own state order")
-    why = trace_problem(flt, n, np.shape(z)[-1], params)
+    why = trace_problem(flt, n, np.shape(z)[-1], params, precision, outputs=False)
     if why:
         raise ValueError(f"run_filter: the filter {why}")
     with jax.enable_x64(precision == "float64"):
@@ -71,8 +71,9 @@ def _run_filter_impl(init, step, params, z, x0, P0, dt):
 
     def body(s, inp):
         z_k, t_k = inp
-        s, out = step(params, s, Meas(z_k, jnp.full((N,), t_k), jnp.ones((N,), bool)))
-        return s, out
+        new, out = step(params, s, Meas(z_k, jnp.full((N,), t_k), jnp.ones((N,), bool)))
+        # the state in its own precision (a filter built in float64, run in float32)
+        return jax.tree_util.tree_map(lambda a, b: jnp.asarray(a, b.dtype), new, s), out
 
     _, out = jax.lax.scan(body, state, (jnp.swapaxes(z, 0, 1), t))
     return tuple(jax.tree_util.tree_map(lambda a: jnp.swapaxes(a, 0, 1), out))

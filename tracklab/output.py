@@ -58,6 +58,11 @@ _written: list[Path] = []
 def _on_sigint(signum, frame):
     global _interrupted
     _interrupted = True
+    f = frame
+    while f is not None:  # inside a garbage-collection callback an exception is only printed ("Exception
+        if f.f_code.co_name == "_xla_gc_callback":  # ignored in …", a traceback): the run stops at the
+            return  # next raise_if_interrupted instead, between chunks
+        f = f.f_back
     raise KeyboardInterrupt
 
 

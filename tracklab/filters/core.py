@@ -151,17 +151,22 @@ def masked_meas(meas: Meas):
     return jnp.where(present, meas.z, 0.0), present
 
 
-def trace_problem(flt: Filter, n: int, m: int, params=None) -> str | None:
+def trace_problem(flt: Filter, n: int, m: int, params=None, precision: str = "float64", *,
+                  outputs: bool = True) -> str | None:
     """Why ``flt`` cannot run on a state of ``n`` and measurements of ``m`` components (None if it
     can): ``init`` and ``step`` traced on shapes alone (nothing compiles), their outputs checked
     against the contract (``Out`` with x (n,), P (n, n), optional x_pred (n,), nu (k,) with
-    S (k, k); a state of the same structure and shapes as ``init``'s)."""
+    S (k, k); a state of the same structure and shapes as ``init``'s). Traced in the
+    ``precision`` the filter will run in (JAX keeps what it traced in one mode for the other).
+    ``outputs=False``: only that it traces and keeps its state's shapes (``run_filter``, which
+    reports whatever the filter gives)."""
     params = flt.params if params is None else params
-    f64 = lambda *shape: jax.ShapeDtypeStruct(shape, jnp.float64)  # noqa: E731
+    dtype = jnp.float64 if precision == "float64" else jnp.float32
+    f64 = lambda *shape: jax.ShapeDtypeStruct(shape, dtype)  # noqa: E731
     try:
-        with jax.enable_x64(True):
+        with jax.enable_x64(precision == "float64"):
             params = jax.tree_util.tree_map(
-                lambda a: jnp.asarray(a, jnp.float64) if jnp.issubdtype(jnp.result_type(a), jnp.floating) else a, params)
+                lambda a: jnp.asarray(a, dtype) if jnp.issubdtype(jnp.result_type(a), jnp.floating) else a, params)
             state = jax.eval_shape(flt.init, params, Prior(f64(n), f64(n, n)))
             state2, out = jax.eval_shape(flt.step, params, state, Meas(f64(m), f64(), jax.ShapeDtypeStruct((), bool)))
     except Exception as e:  # noqa: BLE001 - the user's functions, any error
@@ -173,6 +178,8 @@ def trace_problem(flt: Filter, n: int, m: int, params=None) -> str | None:
     shapes = lambda t: jax.tree_util.tree_map(lambda a: a.shape, t)  # noqa: E731
     if jax.tree_util.tree_structure(state2) != jax.tree_util.tree_structure(state) or shapes(state2) != shapes(state):
         return f"step returns a state shaped {shapes(state2)}, init gives {shapes(state)}: they must be alike"
+    if not outputs:
+        return None
     shape = lambda a: getattr(a, "shape", None)  # noqa: E731
     if shape(out.x) != (n,) or shape(out.P) != (n, n):
         return (f"step gives x {shape(out.x)} and P {shape(out.P)}, the layout has n = {n}: "

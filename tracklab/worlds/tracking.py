@@ -248,6 +248,11 @@ class _Lane:
     wmask: np.ndarray  # (T, windows)
 
 
+def same_dtypes(new, old):
+    """``new`` with each leaf in the dtype of the same leaf of ``old``."""
+    return jax.tree_util.tree_map(lambda a, b: jnp.asarray(a, jnp.result_type(b)), new, old)
+
+
 def run_errors(out, truth_k, pv, dtype) -> _RunErrors:
     """One run's errors at one step from a filter's output ``out`` (an ``Out``), the true state
     ``truth_k`` (2d,) in CV layout and ``pv``, the indices of [x, ẋ, y, ẏ, …] in its state."""
@@ -291,10 +296,12 @@ def _lane(label, real: Realised, params, P0_cv, pattern, detect_all, windows, dt
         z_k, truth_k, t_k, present_k, reports_k = inp
         meas = Meas(z_k, t_k, jnp.asarray(True), present_k)
         if coast is None:
-            state, out = flt.step(params, state, meas)
+            new, out = flt.step(params, state, meas)
         else:  # no sensor reports at this step (between reports): predict only
-            state, out = jax.lax.cond(reports_k, flt.step, coast, params, state, meas)
-        return state, run_errors(out, truth_k, pv, dtype)
+            new, out = jax.lax.cond(reports_k, flt.step, coast, params, state, meas)
+        # in the state's own precision: a filter of one's own built in float64 (its constants) keeps a
+        # float32 run's state float32 (for the built-in kinds, built inside the program, a no-op)
+        return same_dtypes(new, state), run_errors(out, truth_k, pv, dtype)
 
     present = jnp.asarray(pattern) if detect_all else None
     return _Lane(label, init, body, real.view, pattern, present, reports, names, wmask)
