@@ -133,22 +133,18 @@ def tracklab_e2e(exp, runs, chunk, repeat):
             "sums": tracking.unpack(t["sums"], exp.dim)[structure.labels[0]]}
 
 
-def tracking_pv_index(layout):
-    """Indices of [x, ẋ, y, ẏ, …] in a filter's state."""
-    return [i for a in range(layout.dim) for i in (layout.pos_idx[a], layout.vel_idx[a])]
-
-
 def tracklab_reference(exp, data, n):
     """tracklab's estimates (CV layout) of the first n runs, through run_filter."""
     import numpy as np
 
     import tracklab
+    from tracklab.models import cv_index
 
     spec = exp.filter_specs()[0]
     x0, P0 = spec.layout.embed(data.prior[:n], data.P0, spec.prior_extra_var)
     res = tracklab.run_filter(spec.filter, data.z[:n], x0=np.asarray(x0), P0=np.asarray(P0[0] if P0.ndim == 3 else P0),
                               dt=data.dt)
-    return np.asarray(res.x)[..., tracking_pv_index(spec.layout)]
+    return np.asarray(res.x)[..., cv_index(spec.layout)]
 
 
 # ----------------------------------------------------------------------------- dynamax

@@ -3,6 +3,12 @@
 from __future__ import annotations
 
 
+def first_line(e: BaseException) -> str:
+    """An exception as one line: its type and the first line of its message."""
+    lines = str(e).strip().splitlines()
+    return f"{type(e).__name__}: {lines[0]}" if lines else type(e).__name__
+
+
 class ConfigError(ValueError):
     def __init__(self, file, field, value, allowed):
         self.file, self.field, self.value, self.allowed = str(file), field, value, allowed

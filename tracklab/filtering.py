@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab.filters.core import Filter, Meas, Prior
+from tracklab.pytree import like
 
 
 @dataclass(frozen=True)
@@ -72,8 +73,7 @@ def _run_filter_impl(init, step, params, z, x0, P0, dt):
     def body(s, inp):
         z_k, t_k = inp
         new, out = step(params, s, Meas(z_k, jnp.full((N,), t_k), jnp.ones((N,), bool)))
-        # the state in its own precision (a filter built in float64, run in float32)
-        return jax.tree_util.tree_map(lambda a, b: jnp.asarray(a, b.dtype), new, s), out
+        return like(new, s), out  # the state in its own precision
 
     _, out = jax.lax.scan(body, state, (jnp.swapaxes(z, 0, 1), t))
     return tuple(jax.tree_util.tree_map(lambda a: jnp.swapaxes(a, 0, 1), out))

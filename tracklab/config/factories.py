@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 from typing import NamedTuple
 
-from tracklab.errors import ConfigError
+from tracklab.errors import ConfigError, first_line
 
 FACTORY_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*")
 
@@ -33,11 +33,6 @@ class Context(NamedTuple):
 
 def is_factory(kind) -> bool:
     return isinstance(kind, str) and ":" in kind
-
-
-def first_line(e: BaseException) -> str:
-    lines = str(e).strip().splitlines()
-    return f"{type(e).__name__}: {lines[0]}" if lines else type(e).__name__
 
 
 def load_factory(file, field: str, spec: str):

@@ -41,10 +41,10 @@ def _suite(sensors, scenario) -> SensorSuite:
         if not isinstance(s, (Sensor, CustomSensor)):
             raise ConfigError(WHERE, field, type(s).__name__, "must be a tracklab.sensors.Sensor or CustomSensor")
         if isinstance(s, Sensor):
-            want = {"polar": 2, "spherical": 3, "angles": 2, "cartesian": s.dim, "mount": 2}.get(s.kind)
-            if want is None:
+            if s.kind not in SENSOR_SIGMAS:
                 raise ConfigError(WHERE, f"{field}.kind", s.kind, f"must be one of {', '.join(SENSOR_KINDS)} "
                                   "(a sensor of one's own: tracklab.sensors.CustomSensor(h, R))")
+            want = s.dim if s.kind == "cartesian" else len(SENSOR_SIGMAS[s.kind])
             if len(s.sigma) != want or not all(np.isfinite(v) and v > 0 for v in s.sigma):
                 raise ConfigError(WHERE, f"{field}.sigma", tuple(s.sigma), f"a {s.kind} sensor needs {want} noise "
                                   f"standard deviations > 0 ({', '.join(SENSOR_SIGMAS[s.kind])})")
@@ -84,9 +84,9 @@ def _filter_table(fc) -> dict:
     if isinstance(fc, FilterConfig):
         return {"label": fc.label, "kind": fc.kind, "model": fc.model,
                 **{k: np.asarray(v).tolist() for k, v in fc.params.items()}, **fc.options}
-    layout = fc.report_layout(0) if (fc.layout or fc.filter.layout) else None
+    layout = fc.layout or fc.filter.layout
     doc = {"label": fc.label, "kind": fc.kind}
-    if layout is not None and isinstance(layout, tuple):
+    if layout is not None:
         doc["layout"] = {"n": int(layout.n), "pos_idx": list(layout.pos_idx), "vel_idx": list(layout.vel_idx)}
     if fc.sensors:
         doc["sensors"] = list(fc.sensors)
@@ -105,9 +105,9 @@ def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: in
     """
     if not isinstance(name, str) or not NAME_RE.fullmatch(name):
         raise ConfigError(WHERE, "name", name, "must be 1-100 characters of letters, digits, '_', '.', '-'")
-    for field, v, hi in (("runs", runs, MAX_RUNS), ("seed", seed, 2**32 - 1)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not (field == "seed" or v >= 1) or v > hi or v < 0:
-            raise ConfigError(WHERE, field, v, f"must be an integer in [{0 if field == 'seed' else 1}, {hi}]")
+    for field, v, lo, hi in (("runs", runs, 1, MAX_RUNS), ("seed", seed, 0, 2**32 - 1)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
+            raise ConfigError(WHERE, field, v, f"must be an integer in [{lo}, {hi}]")
     if precision not in ("float64", "float32"):
         raise ConfigError(WHERE, "precision", precision, "must be float64 or float32")
     if not all(hasattr(scenario, a) for a in ("simulate", "dt", "steps", "dim")):

@@ -17,7 +17,7 @@ from tracklab.config.fields import (MAX_RUN_STEPS, MAX_RUNS, MAX_STEPS, NAME_RE,
 from tracklab.config import factories
 from tracklab.config.factories import is_factory
 from tracklab.config.studies import parse_studies
-from tracklab.errors import ConfigError
+from tracklab.errors import ConfigError, first_line
 from tracklab.experiments.tracking import Experiment, FilterConfig
 from tracklab.filters.fusion import view_of as _view
 from tracklab.filters.context import filter_context
@@ -153,14 +153,15 @@ def _generated(f, kind, fn, dt, steps):
         with jax.enable_x64(True):
             shape = jax.eval_shape(fn, jax.random.key(0)).shape
     except Exception as e:  # noqa: BLE001 - the user's function, any error
-        raise ConfigError(f, "scenario.kind", kind, f"the factory's truth(key) fails: {factories.first_line(e)}") from None
+        raise ConfigError(f, "scenario.kind", kind, f"the factory's truth(key) fails: {first_line(e)}") from None
     if len(shape) != 2 or shape[1] not in (2, 4, 6):
         raise ConfigError(f, "scenario.kind", kind, f"the factory's truth(key) gives shape {shape}: expected "
                           f"({steps + 1}, 2·dim) rows of [x, ẋ, y, ẏ(, z, ż)]")
     return Generated(fn, dt=dt, steps=steps, dim=shape[1] // 2)
 
 
-def _numbers(f, field, v, counts):
+def _numbers(v, counts):
+    """A TOML list of ``counts`` (allowed lengths) finite numbers as a tuple of floats; None if it is not one."""
     if (not isinstance(v, list) or len(v) not in counts
             or any(isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) or abs(x) > MAX_MAGNITUDE
                    for x in v)):
@@ -170,31 +171,29 @@ def _numbers(f, field, v, counts):
 
 def _manoeuvre(f, sc, dt, steps, sensor_dim):
     """[scenario] kind = "manoeuvre": ``initial`` [x, vx, y, vy(, z, vz)] and ``segments``, a list of
-    tables {duration (s), turn_g (g, + left), accel (m/s², along the velocity)}."""
-    init = _numbers(f, "scenario.initial", sc.get("initial"), (4, 6))
+    tables {duration (s), turn_g (g, + left), accel (m/s², along the velocity)}; what the flight
+    as a whole must keep (a moving target) is the scenario's own check."""
+    init = _numbers(sc.get("initial"), (4, 6))
     if init is None:
         raise ConfigError(f, "scenario.initial", sc.get("initial"), "must be 4 or 6 finite numbers [x, vx, y, vy(, z, vz)]")
     dim = len(init) // 2
     if sensor_dim is not None and dim != sensor_dim:
         raise ConfigError(f, "scenario.initial", list(init), f"is {dim}-D: the sensors observe {sensor_dim}-D positions")
-    speed = math.hypot(*init[1::2])
-    if math.hypot(init[1], init[3]) <= 0:
-        raise ConfigError(f, "scenario.initial", list(init), "needs a horizontal velocity (vx, vy) other than zero")
     table = sc.get("segments", [])
     if not isinstance(table, list):
         raise ConfigError(f, "scenario.segments", table, "must be a list of tables {duration, turn_g, accel}")
     segments = []
     for j, seg in enumerate(table, start=1):
         ss = Section(f, f"scenario.segments[{j}]", seg)
-        duration = ss.number("duration", required=True, positive=True)
-        turn_g = ss.number("turn_g", 0.0, lo=-100.0, hi=100.0)
-        accel = ss.number("accel", 0.0, lo=-1000.0, hi=1000.0)
+        segments.append((ss.number("duration", required=True, positive=True),
+                         ss.number("turn_g", 0.0, lo=-100.0, hi=100.0), ss.number("accel", 0.0, lo=-1000.0, hi=1000.0)))
         ss.check_unknown()
-        speed += accel * duration  # a turn is perpendicular to the velocity: only accel changes the speed
-        if speed <= 0:
-            raise ConfigError(f, f"scenario.segments[{j}].accel", accel, "brings the speed to zero or below: the target must keep moving")
-        segments.append((duration, turn_g, accel))
-    return Manoeuvre(dt=dt, steps=steps, initial=init, segments=tuple(segments))
+    scenario = Manoeuvre(dt=dt, steps=steps, initial=init, segments=tuple(segments))
+    why = scenario.problem()
+    if why:
+        at_start = why.startswith("initial")
+        raise ConfigError(f, "scenario.initial" if at_start else "scenario.segments", list(init) if at_start else table, why)
+    return scenario
 
 
 def parse_tracking(path: Path, raw: dict) -> Experiment:
@@ -257,15 +256,10 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
             altitude=sc.number("altitude", None),
         )
     elif kind == "constant_velocity":
-        init = sc.get("initial")
-        if (
-            not isinstance(init, list)
-            or len(init) not in (2, 4, 6)
-            or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or abs(v) > MAX_MAGNITUDE for v in init)
-        ):
-            raise ConfigError(f, "scenario.initial", init, "must be 2, 4 or 6 finite numbers [x, vx(, y, vy(, z, vz))]")
-        scenario = ConstantVelocity(dt=dt, steps=steps, initial=tuple(float(v) for v in init),
-                                    accel_sigma=sc.number("accel_sigma", 0.0, nonneg=True))
+        init = _numbers(sc.get("initial"), (2, 4, 6))
+        if init is None:
+            raise ConfigError(f, "scenario.initial", sc.get("initial"), "must be 2, 4 or 6 finite numbers [x, vx(, y, vy(, z, vz))]")
+        scenario = ConstantVelocity(dt=dt, steps=steps, initial=init, accel_sigma=sc.number("accel_sigma", 0.0, nonneg=True))
     else:
         p = sc.string("path", required=True)
         try:
@@ -373,10 +367,10 @@ def _pred_windows(f, table, window, steps, dt):
     return {REPORT_WINDOW: report} | out
 
 
-def _seen(f, where, fs, suite):
-    """The sensor names a filter's ``sensors`` field gives (default: all)."""
+def _seen(f, where, fs, suite, default=None):
+    """The sensor names a filter's ``sensors`` field gives (default: ``default``, else all)."""
     all_names = tuple(s.name for s in suite.sensors)
-    names = fs.get("sensors", list(all_names))
+    names = fs.get("sensors", list(all_names if default is None else default))
     if not isinstance(names, list) or not names or any(not isinstance(n, str) or n not in all_names for n in names):
         raise ConfigError(f, f"{where}.sensors", names, f"must be a list of sensor names from: {', '.join(all_names)}")
     return tuple(dict.fromkeys(names))
@@ -418,11 +412,7 @@ def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q, scenario=
     guide = fs.string("guide", "previous") if kind.guided else "previous"
     if guide != "previous" and guide not in all_names:
         raise ConfigError(f, f"filter[{i}].guide", guide, f"must be \"previous\" or a sensor name from: {', '.join(all_names)}")
-    default_names = [n for n in all_names if n != guide]
-    names = fs.get("sensors", default_names)
-    if not isinstance(names, list) or not names or any(not isinstance(n, str) or n not in all_names for n in names):
-        raise ConfigError(f, f"filter[{i}].sensors", names, f"must be a list of sensor names from: {', '.join(all_names)}")
-    names = tuple(dict.fromkeys(names))
+    names = _seen(f, f"filter[{i}]", fs, suite, [n for n in all_names if n != guide])
     fusion = fs.string("fusion", None, choices=("interpolate", "none"))
     if fusion is not None:
         kinds = sorted(s.kind for s in suite.subset(names).sensors)

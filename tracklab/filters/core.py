@@ -18,6 +18,7 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from tracklab.errors import first_line
 from tracklab.linalg import mm, spd_inverse, symmetrise
 from tracklab.sensors.geometry import wrap
 
@@ -170,9 +171,7 @@ def trace_problem(flt: Filter, n: int, m: int, params=None, precision: str = "fl
             state = jax.eval_shape(flt.init, params, Prior(f64(n), f64(n, n)))
             state2, out = jax.eval_shape(flt.step, params, state, Meas(f64(m), f64(), jax.ShapeDtypeStruct((), bool)))
     except Exception as e:  # noqa: BLE001 - the user's functions, any error
-        lines = str(e).strip().splitlines()
-        return (f"fails when traced with a state of {n} and a measurement of {m} components: "
-                f"{type(e).__name__}: {lines[0] if lines else ''}")
+        return f"fails when traced with a state of {n} and a measurement of {m} components: {first_line(e)}"
     if not isinstance(out, Out):
         return f"step returns {type(out).__name__} as its output: expected tracklab.filters.Out(x, P, …)"
     shapes = lambda t: jax.tree_util.tree_map(lambda a: a.shape, t)  # noqa: E731

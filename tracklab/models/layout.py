@@ -41,13 +41,18 @@ class Layout(NamedTuple):
 
     def embed(self, x_cv, P_cv, extra_var=0.0):
         """A prior in the truth's layout [x, ẋ, y, ẏ, …] placed into this state."""
-        idx = np.array([i for a in range(self.dim) for i in (self.pos_idx[a], self.vel_idx[a])])
+        idx = cv_index(self)
         rest = np.setdiff1d(np.arange(self.n), idx)
         x = jnp.zeros(x_cv.shape[:-1] + (self.n,), x_cv.dtype).at[..., idx].set(x_cv)
         P = jnp.zeros(P_cv.shape[:-2] + (self.n, self.n), P_cv.dtype).at[..., idx[:, None], idx[None, :]].set(P_cv)
         if rest.size:
             P = P.at[..., rest, rest].set(extra_var)
         return x, P
+
+
+def cv_index(layout) -> np.ndarray:
+    """Indices of the truth's [x, ẋ, y, ẏ, …] in a state of ``layout`` (a Layout, or a motion model)."""
+    return np.array([i for a in range(len(layout.pos_idx)) for i in (layout.pos_idx[a], layout.vel_idx[a])])
 
 
 def interleaved(dim: int) -> Layout:

@@ -18,6 +18,7 @@ from typing import Any, Callable
 import jax
 import jax.numpy as jnp
 
+from tracklab.errors import first_line
 from tracklab.pytree import static
 
 
@@ -45,8 +46,7 @@ class Generated:
             with jax.enable_x64(True):
                 out = jax.eval_shape(self.simulate, jax.random.key(0))
         except Exception as e:  # noqa: BLE001 - the user's function, any error
-            lines = str(e).strip().splitlines()
-            return f"truth(key) fails: {type(e).__name__}: {lines[0] if lines else ''}"
+            return f"truth(key) fails: {first_line(e)}"
         want = (self.steps + 1, 2 * self.dim)
         if getattr(out, "shape", None) != want or not jnp.issubdtype(out.dtype, jnp.floating):
             return (f"truth(key) gives {getattr(out, 'shape', type(out).__name__)}"

@@ -22,10 +22,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab import random
+from tracklab.errors import first_line
 from tracklab.linalg import jacobian
 from tracklab.pytree import static
-from tracklab.sensors.geometry import epochs, measure_whole, wrap
+from tracklab.sensors.geometry import measure_whole, report_mask, reported, sensor_draws
 
 
 @jax.tree_util.register_dataclass
@@ -78,26 +78,16 @@ class CustomSensor:
         return jax.vmap(self.h)(p)
 
     def report_mask(self, steps: int) -> np.ndarray:
-        if self.period <= 0:
-            return np.ones(steps, bool)
-        return epochs(steps, self.dt, self.period, self.offset)
+        return report_mask(self, steps)
 
     def draws(self, key, steps):
-        """One run's draws, float32: standard-normal noise (steps, m) and, when it can miss, uniforms."""
-        k_noise, k_det = jax.random.split(key)
-        u = random.uniform(k_det, (steps,)) if self.misses else None
-        return random.normal(k_noise, (steps, self.m)), u
+        return sensor_draws(key, steps, self.m, self.misses)
 
     def measure_step(self, draws_k, k, steps, p):
+        """Step k's noisy measurement (m,) of the position ``p`` (dim,): v = chol(R)·(standard normals)."""
         noise, u = draws_k
-        R = jnp.asarray(self.R, p.dtype)
-        z = self.h(p) + jnp.linalg.cholesky(R) @ noise.astype(p.dtype)
-        if any(self.angle_mask):
-            z = jnp.where(jnp.asarray(self.angle_mask), wrap(z), z)
-        present = jnp.asarray(self.report_mask(steps))[k]
-        if u is not None:
-            present = present & (u < self.p_detect)
-        return jnp.where(present, z, jnp.nan)
+        z = self.h(p) + jnp.linalg.cholesky(jnp.asarray(self.R, p.dtype)) @ noise.astype(p.dtype)
+        return reported(self, z, k, steps, u)
 
     def measure(self, key, pos):
         return measure_whole(self, key, pos)
@@ -126,12 +116,7 @@ class CustomSensor:
             with jax.enable_x64(True):
                 shape = jax.eval_shape(self.h, jax.ShapeDtypeStruct((self.dim,), jnp.float64)).shape
         except Exception as e:  # noqa: BLE001 - the user's function, any error
-            return f"h(p) fails on a position of shape ({self.dim},): {type(e).__name__}: {_first_line(e)}"
+            return f"h(p) fails on a position of shape ({self.dim},): {first_line(e)}"
         if shape != (self.m,):
             return f"h(p) gives shape {shape}, R is {self.m} x {self.m}: expected ({self.m},)"
         return None
-
-
-def _first_line(e) -> str:
-    text = str(e).strip().splitlines()
-    return text[0] if text else ""

@@ -81,6 +81,33 @@ def epochs(steps: int, dt: float, period: float, offset: float) -> np.ndarray:
     return (t >= offset - 1e-9 * dt) & (np.abs(j - np.round(j)) < 1e-6)
 
 
+def report_mask(sensor, steps: int) -> np.ndarray:
+    """Which of the steps 1 … steps a sensor reports at (its ``period`` and ``offset``; every step
+    when it has no period)."""
+    if sensor.period <= 0:
+        return np.ones(steps, bool)
+    return epochs(steps, sensor.dt, sensor.period, sensor.offset)
+
+
+def sensor_draws(key, steps, m, misses):
+    """One run's draws of a sensor of ``m`` components, float32: standard-normal noise (steps, m)
+    and, when it can miss (``misses``), uniforms (steps,) that decide its detections."""
+    k_noise, k_det = jax.random.split(key)
+    u = random.uniform(k_det, (steps,)) if misses else None  # float32
+    return random.normal(k_noise, (steps, m)), u
+
+
+def reported(sensor, z, k, steps, u):
+    """A sensor's noisy measurement ``z`` at step k as reported: its angle components wrapped,
+    NaN where it has no report at that step or misses the detection (``u`` ≥ p_detect)."""
+    if any(sensor.angle_mask):
+        z = jnp.where(jnp.asarray(sensor.angle_mask), wrap(z), z)
+    present = jnp.asarray(report_mask(sensor, steps))[k]
+    if u is not None:
+        present = present & (u < sensor.p_detect)
+    return jnp.where(present, z, jnp.nan)
+
+
 @jax.tree_util.register_dataclass
 @dataclass(frozen=True)
 class Sensor:
@@ -127,27 +154,15 @@ class Sensor:
         return _H[self.kind](p)
 
     def report_mask(self, steps: int) -> np.ndarray:
-        if self.period <= 0:
-            return np.ones(steps, bool)
-        return epochs(steps, self.dt, self.period, self.offset)
+        return report_mask(self, steps)
 
     def draws(self, key, steps):
-        """One run's draws, float32: standard-normal noise (steps, m) and, when the sensor can
-        miss, uniforms (steps,) that decide its detections."""
-        k_noise, k_det = jax.random.split(key)
-        u = random.uniform(k_det, (steps,)) if self.misses else None  # float32
-        return random.normal(k_noise, (steps, self.m)), u
+        return sensor_draws(key, steps, self.m, self.misses)
 
     def measure_step(self, draws_k, k, steps, p):
         """Step k's noisy measurement (m,) of the position ``p`` (dim,), from that step's draws."""
         noise, u = draws_k
-        z = self.h(p) + noise.astype(p.dtype) * jnp.asarray(self.sigma, p.dtype)
-        if any(self.angle_mask):
-            z = jnp.where(jnp.asarray(self.angle_mask), wrap(z), z)
-        present = jnp.asarray(self.report_mask(steps))[k]
-        if u is not None:
-            present = present & (u < self.p_detect)
-        return jnp.where(present, z, jnp.nan)
+        return reported(self, self.h(p) + noise.astype(p.dtype) * jnp.asarray(self.sigma, p.dtype), k, steps, u)
 
     def measure(self, key, pos):
         """Noisy measurements of a position sequence ``pos`` (T, dim) -> (T, m)."""

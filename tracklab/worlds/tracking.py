@@ -38,8 +38,9 @@ from tracklab.filters import build
 from tracklab.filters.core import Filter, Meas, Prior, trace_problem
 from tracklab.filters.fusion import view_of
 from tracklab.linalg import elementwise_products, mahalanobis2, mahalanobis2_logdet, norm, sum_elements
-from tracklab.models import MODELS, Kinematic, cv, interleaved
+from tracklab.models import MODELS, cv, cv_index, interleaved
 from tracklab.montecarlo import runner
+from tracklab.pytree import like
 from tracklab.sensors import SensorSuite
 
 
@@ -47,14 +48,9 @@ class Realised(NamedTuple):
     """A filter as one chunk's scan runs it (built inside the program, from traced numbers)."""
 
     filter: Filter
-    model: Kinematic  # the reporting frame's layout (pos_idx, vel_idx, embed)
+    model: Any  # where position and velocity sit in its state: a Layout or a motion model (pos_idx, vel_idx, embed)
     view: Callable | None  # what the filter sees of the sensors' z: (T, M) -> (T, m); None: all of it
     prior_extra_var: Any  # prior variance of states beyond position/velocity
-
-
-def _pv_index(m: Kinematic) -> np.ndarray:
-    """Indices of [x, ẋ, y, ẏ, ...] (the truth's CV layout) in a filter's report."""
-    return np.array([i for a in range(m.dim) for i in (m.pos_idx[a], m.vel_idx[a])])
 
 
 @dataclass(frozen=True, eq=False)
@@ -248,11 +244,6 @@ class _Lane:
     wmask: np.ndarray  # (T, windows)
 
 
-def same_dtypes(new, old):
-    """``new`` with each leaf in the dtype of the same leaf of ``old``."""
-    return jax.tree_util.tree_map(lambda a, b: jnp.asarray(a, jnp.result_type(b)), new, old)
-
-
 def run_errors(out, truth_k, pv, dtype) -> _RunErrors:
     """One run's errors at one step from a filter's output ``out`` (an ``Out``), the true state
     ``truth_k`` (2d,) in CV layout and ``pv``, the indices of [x, ẋ, y, ẏ, …] in its state."""
@@ -282,7 +273,7 @@ def _lane(label, real: Realised, params, P0_cv, pattern, detect_all, windows, dt
     """Set up one filter for the chunk's scan (``pattern``: the report pattern (T, m) of what it sees)."""
     flt = real.filter
     T = pattern.shape[0]
-    pv = _pv_index(real.model)
+    pv = cv_index(real.model)
     reports = pattern.any(axis=-1)
     coast = flt.coast if (flt.coast is not None and not reports.all()) else None
     names = list(windows or {})
@@ -301,7 +292,7 @@ def _lane(label, real: Realised, params, P0_cv, pattern, detect_all, windows, dt
             new, out = jax.lax.cond(reports_k, flt.step, coast, params, state, meas)
         # in the state's own precision: a filter of one's own built in float64 (its constants) keeps a
         # float32 run's state float32 (for the built-in kinds, built inside the program, a no-op)
-        return same_dtypes(new, state), run_errors(out, truth_k, pv, dtype)
+        return like(new, state), run_errors(out, truth_k, pv, dtype)
 
     present = jnp.asarray(pattern) if detect_all else None
     return _Lane(label, init, body, real.view, pattern, present, reports, names, wmask)
@@ -587,7 +578,7 @@ def recorded_sums(out, truth, layout, windows: dict | None = None) -> dict:
     (N, T, 2·dim) in CV layout at the same steps, ``layout`` where position and velocity sit in
     the filter's state. A run with a NaN/inf estimate or a covariance that is not positive
     definite at any step is diverged and left out of every sum, as in a simulation."""
-    pv = _pv_index(layout)
+    pv = cv_index(layout)
     truth = jnp.asarray(truth)
     dtype = truth.dtype
     N, T = truth.shape[:2]
