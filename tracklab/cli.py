@@ -39,6 +39,16 @@ def _size(s):
         raise argparse.ArgumentTypeError(f"{s!r} {e}") from None
 
 
+def _fraction(s):
+    try:
+        v = float(s)
+    except ValueError:
+        v = float("nan")
+    if not 0 < v < 1:
+        raise argparse.ArgumentTypeError(f"{s!r} must be a relative half-width in (0, 1), e.g. 0.005")
+    return v
+
+
 def cmd_run(args) -> int:
     from tracklab.config import MAX_RUNS, load_experiment
     from tracklab.report import markdown_table
@@ -47,7 +57,15 @@ def cmd_run(args) -> int:
     per_run = getattr(exp, "ticks", exp.steps)  # closed loops: radar samples or servo ticks
     if args.runs is not None and (args.runs > MAX_RUNS or args.runs * per_run > 10**12):
         raise ConfigError(args.experiment, "--runs", args.runs, f"must be <= {MAX_RUNS} and runs x steps <= 1e12")
-    runs = args.runs or exp.runs
+    target = args.precision
+    if target is not None and not hasattr(exp, "target_precision"):
+        raise ConfigError(args.experiment, "--precision", target, "is for open-loop tracking experiments")
+    if target is not None and args.runs is None and exp.target_precision is None:
+        from tracklab.config.fields import AUTO_MAX_RUNS
+
+        runs = max(2, min(AUTO_MAX_RUNS, 10**12 // per_run))  # the most --precision alone may take
+    else:
+        runs = args.runs or exp.runs
     out = Path(args.out) if args.out else Path("results") / exp.name
 
     def progress(done, total):
@@ -55,9 +73,10 @@ def cmd_run(args) -> int:
         if sys.stderr.isatty() or done == total:
             print(f"\r{exp.name}: {done}/{total} runs", end="\n" if done == total else "", file=sys.stderr, flush=True)
 
+    extra = {"target_precision": target} if target is not None else {}
     doc = exp.run(runs=runs, seed=args.seed, out=out, progress=progress, figures=not args.no_figures,
-                  precision="float32" if args.float32 else None, max_memory=args.max_memory)
-    print(f"# {exp.name}: {runs} runs x {exp.steps} steps, window {exp.window[0]}-{exp.window[1]}, "
+                  precision="float32" if args.float32 else None, max_memory=args.max_memory, **extra)
+    print(f"# {exp.name}: {doc['runs']} runs x {exp.steps} steps, window {exp.window[0]}-{exp.window[1]}, "
           f"{doc['wall_s']:.1f} s wall, {doc['compile_s']:.1f} s of it compiling or loading the program")
     print(markdown_table(doc), end="")
     print(f"results written to {out}/")
@@ -214,6 +233,9 @@ def build_parser():
     r.add_argument("--out", help="results folder (default: results/<name>/)")
     r.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     r.add_argument("--float32", action="store_true", help="single precision (as precision = \"float32\")")
+    r.add_argument("--precision", type=_fraction, metavar="REL",
+                   help="run until every filter's position-RMSE interval is within ± REL of it (e.g. 0.005; "
+                        "--runs is then the most it may take)")
     r.add_argument("--max-memory", type=_size, help="refuse an experiment needing more (e.g. 8G; default: this machine's memory)")
     r.set_defaults(func=cmd_run)
     tu = sub.add_parser("tune", help="tune filter parameters by gradient descent through the Monte-Carlo runs")

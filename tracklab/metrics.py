@@ -23,6 +23,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import gammainc
 
+from tracklab.intervals import LEVEL, half_width, paired_half_width, t_quantile, value_and_gradient, wilson
+
 AXES = ("x", "y", "z")
 
 
@@ -86,8 +88,18 @@ def window_key(key, name):
     return key if name == REPORT_WINDOW else f"{key}[{name}]"
 
 
-def per_step(sums, dim, axes=AXES):
-    """Per-step series for one filter from its sums."""
+def _step_half_width(mean, sum_sq, c, level):
+    """Per-step t half-width of a mean over c runs, from the sums of the values and of their squares."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        var = np.maximum(_div(sum_sq, c) - mean**2, 0.0) * _div(c, c - 1)
+        t = np.array([t_quantile(level, n - 1) if n >= 2 else np.nan for n in np.unique(c)])
+        tq = t[np.searchsorted(np.unique(c), c)]
+        return tq * np.sqrt(_div(var, c))
+
+
+def per_step(sums, dim, axes=AXES, level=LEVEL):
+    """Per-step series for one filter from its sums; ``*_hw`` are the half-widths of the per-step
+    RMSE and mean error at ``level`` (over the runs; an RMSE's by the delta method)."""
     c = sums["count"]
     s = {}
     msepred = _div(sums["sumsq_pred"], c[:, None])
@@ -114,6 +126,20 @@ def per_step(sums, dim, axes=AXES):
     s["rmse_vel"] = np.sqrt(s["mse_vel"])
     s["max_err_pos"] = np.where(c > 0, sums["max_err_pos"], np.nan)
     s["max_err_vel"] = np.where(c > 0, sums["max_err_vel"], np.nan)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for a in range(dim):
+            ax = axes[a]
+            for tag, sq, four, sm in (("", msep, "sum4_pos", "sum_pos"), ("v", msev, "sum4_vel", "sum_vel")):
+                if four not in sums:
+                    continue
+                hw_mse = _step_half_width(sq[:, a], sums[four][:, a], c, level)
+                s[f"rmse_{tag}{ax}_hw"] = hw_mse / (2.0 * np.sqrt(sq[:, a]))
+                s[f"mean_err_{tag}{ax}_hw"] = _step_half_width(_div(sums[sm][:, a], c), sums[f"sumsq_{sm[4:]}"][:, a],
+                                                               c, level)
+        for q in ("pos", "vel"):
+            if f"sumsq2_{q}" in sums:
+                hw_mse = _step_half_width(s[f"mse_{q}"], sums[f"sumsq2_{q}"], c, level)
+                s[f"rmse_{q}_hw"] = hw_mse / (2.0 * s[f"rmse_{q}"])
     s["nees"] = _div(sums["sum_nees"], c)
     s["nees_lo"], s["nees_hi"] = average_chi2_interval(2 * dim, c)
     s["nees_in_bounds"] = _inside(s["nees"], s["nees_lo"], s["nees_hi"])
@@ -192,18 +218,93 @@ def pcrlb_series(pcrlb, dim, axes=AXES):
     return out
 
 
-def statistics(result, window, pred_windows=None):
-    """All statistics of a MonteCarloResult: {'bounds': {...}, 'filters': {label: {...}}}.
+PERCENTILES = (50, 90, 99)  # of each run's RMS position error
+PAIRED = ("rmse_pos", "rmse_vel", "nees", "pred_err_rms")  # compared with the baseline filter
+CDF_POINTS = 201  # quantiles of the per-run error kept for the error-CDF figure
+
+
+def sample_statistics(names, axes, windows):
+    """Summary key -> statistic of the per-run samples' means (``intervals.value_and_gradient``),
+    for samples laid out as ``names`` ((name, width), ``worlds.tracking.sample_names``)."""
+    off, i = {}, 0
+    for n, w in names:
+        off[n], i = list(range(i, i + w)), i + w
+    d = len(off["err_pos"])
+    stats = {"rmse_pos": ("root", off["sq_pos"]), "rmse_vel": ("root", off["sq_vel"]),
+             "nees": ("mean", off["nees"][0]), "nis": ("ratio", off["nis"][0], off["updates"][0])}
+    for a, ax in enumerate(axes[:d]):
+        stats[f"rmse_{ax}"] = ("root", [off["sq_pos_axes"][a]])
+        stats[f"mean_err_{ax}"] = ("mean", off["err_pos"][a])
+        stats[f"mean_err_v{ax}"] = ("mean", off["err_vel"][a])
+    for w in windows:
+        stats[window_key("pred_err_rms", w)] = ("root", off[f"sq_pred@{w}"])
+        stats[window_key("pred_err_max", w)] = ("mean", off[f"max_pred@{w}"][-1])
+        for a, ax in enumerate(axes[:d]):
+            stats[window_key(f"pred_err_rms_{ax}", w)] = ("root", [off[f"sq_pred_axes@{w}"][a]])
+            stats[window_key(f"pred_err_max_{ax}", w)] = ("mean", off[f"max_pred@{w}"][a])
+    return stats
+
+
+def with_intervals(result, filters, level=LEVEL, baseline=None):
+    """Each filter's summary from its runs' samples with the half-widths of their ``level``
+    intervals (``half_width``), the Wilson interval of its diverged fraction, the percentiles of
+    its runs' RMS position error with their distribution (``cdf``), and (``paired``) its
+    differences to the ``baseline`` filter (default the first) on their common runs."""
+    samples = result.samples
+    labels = list(result.labels)
+    windows = [n.split("@", 1)[1] for n, _ in result.sample_names if n.startswith("max_pred@")]
+    stats = sample_statistics(result.sample_names, tuple(getattr(result, "axes", AXES)), windows)
+    base = labels.index(baseline) if baseline in labels else 0
+    for li, label in enumerate(labels):
+        f = filters[label]
+        summary, hw = f["summary"], {}
+        own = samples.pair(li, li)
+        for key, stat in stats.items():
+            v, g = value_and_gradient(stat, own.mean_f)
+            summary[key] = float(v) if own.n > 0 else float("nan")
+            hw[key] = half_width(g, own.cov_ff, own.n, level) if np.isfinite(v) else float("nan")
+        if "pcrlb_pos" in summary:
+            summary["rmse_pos_over_pcrlb"] = summary["rmse_pos"] / summary["pcrlb_pos"]
+            hw["rmse_pos_over_pcrlb"] = hw["rmse_pos"] / summary["pcrlb_pos"]
+        runs = summary.get("runs", 0)
+        summary["diverged_fraction"] = summary["diverged"] / runs if runs else float("nan")
+        f["intervals"] = {"diverged_fraction": list(wilson(summary["diverged"], runs, level))}
+        errors = samples.kept(li, 0)
+        for p, v in zip(PERCENTILES, np.percentile(errors, PERCENTILES) if errors.size else [np.nan] * 3):
+            summary[f"err_pos_p{p}"] = float(v)
+        if errors.size:
+            q = np.linspace(0.0, 1.0, CDF_POINTS)
+            f["cdf"] = {"probability": q, "err_pos": np.quantile(errors, q)}
+        f["half_width"] = hw
+        pair = samples.pair(li, base)
+        paired = {"baseline": labels[base], "runs": pair.n}
+        for key in PAIRED:
+            if key not in stats:
+                continue
+            vf, gf = value_and_gradient(stats[key], pair.mean_f)
+            vb, gb = value_and_gradient(stats[key], pair.mean_g)
+            h = paired_half_width(gf, gb, pair.cov_ff, pair.cov_gg, pair.cov_fg, pair.n, level)
+            diff = float(vf - vb) if pair.n > 0 else float("nan")
+            paired[key] = {"difference": diff, "half_width": h,
+                           "significant": bool(np.isfinite(h) and abs(diff) > h) if li != base else False}
+        f["paired"] = paired
+    return filters
+
+
+def statistics(result, window, pred_windows=None, level=LEVEL, baseline=None):
+    """All statistics of a MonteCarloResult: {'bounds': {...}, 'filters': {label: {...}}, 'level': …}.
 
     ``pred_windows``: name -> (steps,) mask of the prediction-error windows
-    (the report window is always one, as ``REPORT_WINDOW``).
+    (the report window is always one, as ``REPORT_WINDOW``). With the runs' samples (and
+    ``window`` the window they average over) every summary number has its ``level`` interval
+    and each filter its paired differences to ``baseline`` (``with_intervals``).
     """
     axes = tuple(getattr(result, "axes", AXES))
     bounds = pcrlb_series(result.pcrlb, result.dim, axes)
     filters = {}
     for label in result.labels:
         sums = result.sums[label]
-        series = per_step(sums, result.dim, axes)
+        series = per_step(sums, result.dim, axes, level)
         runmax = {k.split("@", 1)[1]: v for k, v in sums.items() if k.startswith("runmax_pred@")}
         summary = summarise(
             series,
@@ -216,4 +317,6 @@ def statistics(result, window, pred_windows=None):
             runmax=runmax,
         )
         filters[label] = {"kind": result.kinds[label], "summary": summary, "series": series}
-    return {"bounds": bounds, "filters": filters}
+    if getattr(result, "samples", None) is not None and tuple(result.report_window or ()) == tuple(window):
+        with_intervals(result, filters, level, baseline)
+    return {"bounds": bounds, "filters": filters, "level": level}

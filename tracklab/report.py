@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tracklab.metrics import AXES, REPORT_WINDOW, statistics
+from tracklab.metrics import AXES, PAIRED, REPORT_WINDOW, statistics
 
 # (summary key, title, format); {p}/{v} are the position/velocity units, {a} an axis name
 COLUMNS = [
@@ -32,9 +32,13 @@ COLUMNS = [
     ("nees", "NEES", "{:.2f}"),
     ("nees_in_bounds", "NEES in 95% (%)", "{:.0%}"),
     ("nis", "NIS", "{:.2f}"),
+    ("err_pos_p50", "run err p50 ({p})", "{:.{d}f}"),
+    ("err_pos_p90", "run err p90 ({p})", "{:.{d}f}"),
+    ("err_pos_p99", "run err p99 ({p})", "{:.{d}f}"),
     ("diverged", "diverged", "{:d}"),
     ("runs", "runs", "{:d}"),
 ]
+PAIRED_COLUMN = "rmse_pos"  # the paired difference table.md shows (stats.json and table.csv hold them all)
 WINDOW_COLUMNS = [  # per named prediction-error window
     ("pred_err_rms[{w}]", "pred err RMS {w} ({p})", "{:.{d}f}"),
     ("pred_err_max[{w}]", "pred err max {w} ({p})", "{:.{d}f}"),
@@ -46,6 +50,51 @@ def _fmt(v, spec):
         return "—"
     s = spec.format(v)
     return s.rstrip("%") if spec.endswith("%}") else s
+
+
+def _missing(v) -> bool:
+    return v is None or (isinstance(v, (float, np.floating)) and not math.isfinite(v))
+
+
+def with_half_width(v, hw, spec="{:.2f}", sign=False) -> str:
+    """``34.45 ± 0.05``: the half-width to two significant digits, the value to the same decimal;
+    the column's own format when there is no half-width."""
+    if _missing(v):
+        return "—"
+    if _missing(hw):
+        return _fmt(v, spec)
+    if hw == 0:
+        return f"{v:{'+' if sign else ''}.{_decimals(spec)}f} ± 0"
+    d = max(0, 1 - math.floor(math.log10(abs(hw))))
+    return f"{v:{'+' if sign else ''}.{d}f} ± {hw:.{d}f}"
+
+
+def _decimals(spec) -> int:
+    try:
+        return int(spec.split(".")[1].split("f")[0]) if "f}" in spec else 2
+    except ValueError:
+        return 2
+
+
+def _diverged_cell(f) -> str:
+    """``k (lo–hi %)``: the diverged runs and the Wilson interval of their fraction."""
+    k = f["summary"].get("diverged")
+    lo_hi = f.get("intervals", {}).get("diverged_fraction")
+    if k is None or not lo_hi or _missing(lo_hi[1]):
+        return _fmt(k, "{:d}")
+    lo, hi = (100.0 * v for v in lo_hi)
+    return f"{k} ({lo:.2g}–{hi:.2g} %)"
+
+
+def _paired_cell(f, key=PAIRED_COLUMN) -> str:
+    pd = f.get("paired", {})
+    c = pd.get(key)
+    if c is None:
+        return "—"
+    if pd.get("baseline") == f.get("label"):
+        return "baseline"
+    cell = with_half_width(c["difference"], c["half_width"], sign=True)
+    return cell if c["significant"] or cell == "—" else cell + " (n.s.)"
 
 
 def _columns(stats):
@@ -69,13 +118,56 @@ def _columns(stats):
     return cols
 
 
+def _baseline(stats):
+    return next((f["paired"]["baseline"] for f in stats["filters"].values() if "paired" in f), None)
+
+
 def table_rows(stats):
+    """The one-row-per-filter table: a number with an interval as ``value ± half-width``, the
+    diverged runs with the interval of their fraction, and the paired difference to the baseline."""
     cols = _columns(stats)
+    base = _baseline(stats)
+    p = stats.get("units", ("m", "m/s"))[0]
     header = ["filter", "kind"] + [t for _, t, _ in cols]
+    if base is not None:
+        header.insert(2 + next((i + 1 for i, c in enumerate(cols) if c[0] == PAIRED_COLUMN), 0),
+                      f"Δ RMSE pos vs {base} ({p})")
     rows = []
     for label, f in stats["filters"].items():
-        rows.append([label, f["kind"]] + [_fmt(f["summary"].get(k), spec) for k, _, spec in cols])
+        f = dict(f, label=label)
+        hw = f.get("half_width", {})
+        cells = []
+        for k, _, spec in cols:
+            if k == "diverged":
+                cells.append(_diverged_cell(f))
+            elif k in hw:
+                cells.append(with_half_width(f["summary"].get(k), hw[k], spec))
+            else:
+                cells.append(_fmt(f["summary"].get(k), spec))
+            if k == PAIRED_COLUMN and base is not None:
+                cells.append(_paired_cell(f))
+        rows.append([label, f["kind"]] + cells)
     return header, rows
+
+
+def table_caption(stats) -> str:
+    """What the table's ± and Δ mean (empty when it has no intervals)."""
+    if not any("half_width" in f for f in stats["filters"].values()):
+        return ""
+    level = stats.get("level", 0.95)
+    runs = stats.get("runs")
+    text = (f"± : half-width of the {level:.0%} confidence interval over the {runs} runs (Student t over the runs' "
+            "time-averaged values; delta method for an RMSE and the NIS). diverged: runs, with the Wilson interval of "
+            "their fraction. run err pNN: percentiles of the runs' RMS position errors.")
+    base = _baseline(stats)
+    if base is not None:
+        text += (f" Δ: difference to {base} on the same runs with its paired interval; "
+                 f"(n.s.): not significant at {level:.0%}.")
+    if stats.get("auto"):
+        a = stats["auto"]
+        text += (f" Runs chosen automatically: {runs} runs brought every filter's position-RMSE interval within "
+                 f"± {100 * a['target']:g} % (at most {a['max_runs']})" + ("." if a["reached"] else "; the target was not reached."))
+    return text
 
 
 def md_cell(text) -> str:
@@ -87,16 +179,32 @@ def markdown_table(stats) -> str:
     header, rows = table_rows(stats)
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * len(header)) + "|"]
     lines += ["| " + " | ".join(md_cell(c) for c in r) + " |" for r in rows]
-    return "\n".join(lines) + "\n"
+    caption = table_caption(stats)
+    return "\n".join(lines) + "\n" + (f"\n{caption}\n" if caption else "")
 
 
 def csv_table(stats) -> str:
+    """Every column of the table as numbers: a value's half-width in ``<key>_hw``, the diverged
+    fraction's interval in ``diverged_lo``/``diverged_hi``, the paired differences to the
+    baseline in ``delta_<key>`` and ``delta_<key>_hw``."""
     cols = _columns(stats)
+    keys = [k for k, _, _ in cols]
+    hw_keys = [k for k in keys if any(k in f.get("half_width", {}) for f in stats["filters"].values())]
+    paired = [k for k in PAIRED if any(k in f.get("paired", {}) for f in stats["filters"].values())]
+    intervals = any("intervals" in f for f in stats["filters"].values())
     buf = io.StringIO()
     w = csv.writer(buf)
-    w.writerow(["filter", "kind"] + [k for k, _, _ in cols])
+    w.writerow(["filter", "kind"] + keys + [f"{k}_hw" for k in hw_keys] + (["diverged_lo", "diverged_hi"] if intervals else [])
+               + [c for k in paired for c in (f"delta_{k}", f"delta_{k}_hw")] + (["baseline"] if paired else []))
     for label, f in stats["filters"].items():
-        w.writerow([label, f["kind"]] + [_json_num(f["summary"].get(k)) for k, _, _ in cols])
+        row = [label, f["kind"]] + [_json_num(f["summary"].get(k)) for k in keys]
+        row += [_json_num(f.get("half_width", {}).get(k)) for k in hw_keys]
+        if intervals:
+            row += [_json_num(v) for v in f.get("intervals", {}).get("diverged_fraction", [None, None])]
+        pd = f.get("paired", {})
+        row += [_json_num(pd.get(k, {}).get(c)) for k in paired for c in ("difference", "half_width")]
+        row += [pd.get("baseline")] if paired else []
+        w.writerow(row)
     return buf.getvalue()
 
 
@@ -137,7 +245,8 @@ def _decimate(tree, stride):
 def stats_document(exp, res):
     from tracklab import __version__
 
-    st = statistics(res, exp.window, exp.pred_windows)
+    level = getattr(exp, "level", 0.95)
+    st = statistics(res, exp.window, exp.pred_windows, level, getattr(exp, "baseline", None))
     ran = exp.ran_with()
     stride = series_stride(res.steps)
     st = {
@@ -155,17 +264,18 @@ def stats_document(exp, res):
         "axes": list(res.axes),  # names of the reporting frame's position axes
         "units": list(res.units),  # of position and velocity
         "windows": [w for w in exp.pred_windows if w != REPORT_WINDOW],  # named prediction-error windows
+        "level": level,  # of every interval: value ± half_width
         "wall_s": res.wall_s,
         "compile_s": res.compile_s,
         "experiment": exp.raw,
         "bounds": st["bounds"],
         "example_run": _decimate(_example(exp, res), stride),
         "filters": {
-            label: {"kind": f["kind"], "label": label, "params": ran.get(label, {}), "summary": f["summary"],
-                    "series": f["series"]}
+            label: {"kind": f["kind"], "label": label, "params": ran.get(label, {}), "summary": f["summary"]}
+            | {k: f[k] for k in ("half_width", "intervals", "paired", "cdf") if k in f} | {"series": f["series"]}
             for label, f in st["filters"].items()
         },
-    }
+    } | ({"auto": res.auto} if getattr(res, "auto", None) else {})
 
 
 def results_path(exp, out=None) -> Path:

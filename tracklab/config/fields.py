@@ -132,13 +132,38 @@ def check_sections(f, raw, required, allowed, kind=None):
         raise ConfigError(f, f"[{unknown[0]}]", "...", f"unknown section{where} (allowed: {', '.join(allowed)})")
 
 
-def experiment_header(f, raw):
-    """[experiment]'s name, runs, seed, precision (and description) -> (name, runs, seed, precision, section)."""
+AUTO_MAX_RUNS = 100_000  # the most runs = "auto" takes unless max_runs says
+
+
+def auto_runs(ex: Section):
+    """``runs = "auto"``: (the most runs it may take, the target relative half-width of every
+    filter's position RMSE); (None, None) when the runs are a number."""
+    if ex.get("runs") != "auto":
+        for key in ("target_precision", "max_runs"):
+            if ex.has(key):
+                raise ConfigError(ex.file, f"experiment.{key}", ex.get(key), 'is only for runs = "auto"')
+        return None, None
+    target = ex.number("target_precision", required=True)
+    if not 0 < target < 1:
+        raise ConfigError(ex.file, "experiment.target_precision", target,
+                          "must be a relative half-width in (0, 1), e.g. 0.005 for ±0.5 %")
+    return ex.integer("max_runs", AUTO_MAX_RUNS, lo=2, hi=MAX_RUNS), target
+
+
+def experiment_header(f, raw, auto=False):
+    """[experiment]'s name, runs, seed, precision (and description) -> (name, runs, seed, precision, section).
+
+    ``auto``: the experiment may say ``runs = "auto"`` (``auto_runs`` reads it; runs is then None)."""
     ex = Section(f, "experiment", raw["experiment"])
     name = ex.string("name", required=True)
     if not NAME_RE.fullmatch(name):
         raise ConfigError(f, "experiment.name", name, "must be 1-100 characters of letters, digits, '_', '.', '-'")
-    runs = ex.integer("runs", required=True, lo=1, hi=MAX_RUNS)
+    if auto and ex.get("runs") == "auto":
+        runs = None
+    elif ex.get("runs") == "auto":
+        raise ConfigError(f, "experiment.runs", "auto", 'runs = "auto" is for open-loop tracking experiments: give a number')
+    else:
+        runs = ex.integer("runs", required=True, lo=1, hi=MAX_RUNS)
     seed = ex.integer("seed", 0, lo=0, hi=2**32 - 1)
     precision = ex.string("precision", "float64", choices=("float64", "float32"))
     ex.string("description")

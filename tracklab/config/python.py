@@ -95,19 +95,27 @@ def _filter_table(fc) -> dict:
 
 def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: int = 1000, seed: int = 0,
                prior: dict | None = None, window: tuple[int, int] | None = None, windows: dict | None = None,
-               chunk: int | None = None, precision: str = "float64") -> Experiment:
+               chunk: int | None = None, precision: str = "float64", level: float = 0.95,
+               baseline: str | None = None, target_precision: float | None = None) -> Experiment:
     """An open-loop experiment from Python objects (see the module's doc).
 
     ``prior``: ``pos_sigma`` (m), ``vel_sigma`` (m/s), ``acc_sigma`` (the prior std of states
     beyond position and velocity), by default 100, 10, 1. ``window``: the report window
     (first, last step, both included; default all). ``windows``: named windows of the
-    one-step prediction error, as ``[report.windows]`` in a file.
+    one-step prediction error, as ``[report.windows]`` in a file. ``level``: of the confidence
+    intervals; ``baseline``: the filter the paired differences are to (default the first);
+    ``target_precision``: run until every filter's position-RMSE interval is within ± that
+    fraction of it, ``runs`` at most (as ``runs = "auto"`` in a file).
     """
     if not isinstance(name, str) or not NAME_RE.fullmatch(name):
         raise ConfigError(WHERE, "name", name, "must be 1-100 characters of letters, digits, '_', '.', '-'")
     for field, v, lo, hi in (("runs", runs, 1, MAX_RUNS), ("seed", seed, 0, 2**32 - 1)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
             raise ConfigError(WHERE, field, v, f"must be an integer in [{lo}, {hi}]")
+    if not (isinstance(level, (int, float)) and 0.5 <= level < 1):
+        raise ConfigError(WHERE, "level", level, "must be a confidence level in [0.5, 1), e.g. 0.95")
+    if target_precision is not None and not (isinstance(target_precision, (int, float)) and 0 < target_precision < 1):
+        raise ConfigError(WHERE, "target_precision", target_precision, "must be a relative half-width in (0, 1)")
     if precision not in ("float64", "float32"):
         raise ConfigError(WHERE, "precision", precision, "must be float64 or float32")
     if not all(hasattr(scenario, a) for a in ("simulate", "dt", "steps", "dim")):
@@ -149,6 +157,8 @@ def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: in
         entries.append(fc)
     if not entries:
         raise ConfigError(WHERE, "filters", filters, "must hold at least one filter")
+    if baseline is not None and baseline not in labels:
+        raise ConfigError(WHERE, "baseline", baseline, f"must be one of the filters' labels: {', '.join(sorted(labels))}")
 
     w = tuple(window) if window is not None else (1, steps)
     if len(w) != 2 or not all(isinstance(v, (int, np.integer)) for v in w) or not 1 <= w[0] <= w[1] <= steps:
@@ -161,11 +171,13 @@ def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: in
         "sensor": [_describe(s) for s in suite.sensors],
         "prior": prior,
         "filter": [_filter_table(fc) for fc in entries],
-        "report": {"window": list(w), **({"windows": {k: v for k, v in (windows or {}).items()}} if windows else {})},
+        "report": {"window": list(w), **({"windows": {k: v for k, v in (windows or {}).items()}} if windows else {}),
+                   "level": level, **({"baseline": baseline} if baseline else {})},
     }
     return Experiment(path=None, name=name, runs=int(runs), seed=int(seed), dt=dt, steps=steps, chunk=chunk,
                       scenario=scenario, sensor=suite, filters=entries, prior=prior, window=(int(w[0]), int(w[1])),
-                      raw=raw, precision=precision, pred_windows=pred_windows)
+                      raw=raw, precision=precision, pred_windows=pred_windows, level=float(level), baseline=baseline,
+                      target_precision=target_precision)
 
 
 __all__ = ["experiment"]

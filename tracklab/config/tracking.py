@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from tracklab.config.fields import (MAX_RUN_STEPS, MAX_RUNS, MAX_STEPS, NAME_RE, WINDOW_NAME_RE, Section,
-                                    check_sections, experiment_header)
+                                    auto_runs, check_sections, experiment_header)
 from tracklab.config import factories
 from tracklab.config.factories import is_factory
 from tracklab.config.studies import parse_studies
@@ -201,11 +201,15 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
     f = path = Path(path)
     check_sections(f, raw, ("experiment", "scenario", "sensor"),
                    ("experiment", "scenario", "sensor", "filter", "prior", "report", "study"))
-    name, runs, seed, precision, ex = experiment_header(f, raw)
+    name, runs, seed, precision, ex = experiment_header(f, raw, auto=True)
+    max_runs, target = auto_runs(ex)
+    runs = runs or max_runs
     dt = ex.number("dt", required=True, positive=True)
     if not 1e-6 <= dt <= 1e6:
         raise ConfigError(f, "experiment.dt", dt, "must be a period in [1e-06, 1e+06] s")
     steps = ex.integer("steps", required=True, lo=1, hi=MAX_STEPS)
+    if target is not None and not ex.has("max_runs"):
+        runs = max(2, min(runs, MAX_RUN_STEPS // steps))
     if runs * steps > MAX_RUN_STEPS:
         raise ConfigError(f, "experiment.runs", runs, f"runs x steps must be <= {MAX_RUN_STEPS:.0e}")
     chunk = ex.integer("chunk", None, lo=1, hi=1_000_000)
@@ -318,13 +322,19 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
     ):
         raise ConfigError(f, "report.window", w, f"must be [first, last] steps with 1 <= first <= last <= {steps}")
     pred_windows = _pred_windows(f, rp.get("windows", {}), (w[0], w[1]), steps, dt)
+    level = rp.number("level", 0.95)
+    if not 0.5 <= level < 1:
+        raise ConfigError(f, "report.level", level, "must be a confidence level in [0.5, 1), e.g. 0.95")
+    baseline = rp.string("baseline")
+    if baseline is not None and baseline not in labels:
+        raise ConfigError(f, "report.baseline", baseline, f"must be one of the filters' labels: {', '.join(sorted(labels))}")
     rp.check_unknown()
     studies = parse_studies(f, raw.get("study"), filters)
 
     return Experiment(
         path=path, name=name, runs=runs, seed=seed, dt=dt, steps=steps, chunk=chunk, scenario=scenario,
         sensor=suite, filters=filters, prior=prior, window=(w[0], w[1]), raw=raw, also_runs=tuple(also), precision=precision,
-        pred_windows=pred_windows, studies=studies,
+        pred_windows=pred_windows, studies=studies, level=level, baseline=baseline, target_precision=target,
     )
 
 

@@ -20,7 +20,8 @@ import numpy as np
 
 from tracklab.metrics import REPORT_WINDOW
 from tracklab.models import interleaved
-from tracklab.worlds.tracking import MonteCarloResult, recorded_sums
+from tracklab.montecarlo.samples import RunSamples
+from tracklab.worlds.tracking import MonteCarloResult, recorded_sums, sample_names, with_report_window
 
 
 @dataclass
@@ -99,7 +100,7 @@ def judge(results, truth, *, dt: float, name: str = "recorded", window: tuple[in
     k = np.arange(1, T + 1)
     masks = {REPORT_WINDOW: (k >= w[0]) & (k <= w[1])} | {n: np.asarray(m, bool) for n, m in (windows or {}).items()}
     t0 = time.perf_counter()
-    sums, example_x = {}, {}
+    sums, example_x, example_var, per_run = {}, {}, {}, []
     with jax.enable_x64(True):
         for label, r in results.items():
             x = _batched(r.x, f"{label}: x", 2)
@@ -117,13 +118,18 @@ def judge(results, truth, *, dt: float, name: str = "recorded", window: tuple[in
                       dof=None if r.dof is None else np.asarray(r.dof).reshape(N, T))
             s = recorded_sums(out, truth, layout, masks)
             example_x[label] = s.pop("example_x")
+            example_var[label] = s.pop("example_var")
+            per_run.append(s.pop("per_run"))
             sums[label] = s
+    samples = RunSamples()  # the recordings are the runs, the same for every filter: paired
+    samples.add(*(np.stack([p[k] for p in per_run]) for k in ("values", "ok", "kept")))
     kinds = {label: "recorded" for label in results}
     res = MonteCarloResult(
         runs=N, steps=T, dt=float(dt), dim=dim, sums=sums, pcrlb=None, wall_s=time.perf_counter() - t0, compile_s=0.0,
         labels=list(results), kinds=kinds,
-        example={"truth": np.concatenate([np.full((1, n2), np.nan), truth[0]]), "x": example_x},
-        windows=list(masks))
+        example={"truth": np.concatenate([np.full((1, n2), np.nan), truth[0]]), "x": example_x, "var": example_var},
+        windows=list(masks), samples=samples, sample_names=sample_names(dim, with_report_window(masks, T)),
+        report_window=w)
     raw = {"experiment": {"name": name, "runs": N, "steps": T, "dt": float(dt), "built": "recorded"},
            "filter": [{"label": label} for label in results], "report": {"window": list(w)}}
     parameters = {label: {n: np.asarray(v, float) for n, v in (params or {}).get(label, {}).items()} for label in results}

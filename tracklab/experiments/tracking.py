@@ -50,6 +50,9 @@ class Experiment:
     precision: str = "float64"
     pred_windows: dict = field(default_factory=dict)  # name -> (steps,) bool mask, report window included
     studies: list = field(default_factory=list)  # [[study]]: tuning and sweeps `tracklab reproduce` rebuilds
+    level: float = 0.95  # of the confidence intervals
+    baseline: str | None = None  # the filter the paired comparisons are to (None: the first)
+    target_precision: float | None = None  # runs = "auto": stop when every position RMSE is this tight (relative)
 
     @property
     def dim(self) -> int:
@@ -134,17 +137,22 @@ class Experiment:
         from tracklab.metrics import statistics
         from tracklab.worlds import tracking
 
-        return statistics(tracking.result(structure, params, sums, out), self.window, self.pred_windows)
+        return statistics(tracking.result(structure, params, sums, out), self.window, self.pred_windows, self.level,
+                          self.baseline)
 
     @property
     def units(self):
         return tuple(getattr(self.scenario, "units", ("m", "m/s")))
 
-    def monte_carlo(self, runs=None, seed=None, progress=None, chunk=None, precision=None):
+    def monte_carlo(self, runs=None, seed=None, progress=None, chunk=None, precision=None, target_precision=None):
+        """The Monte-Carlo result of ``runs`` runs (default the file's); with a target precision
+        (``target_precision``, or the file's runs = "auto"), chunks run until every filter's
+        position-RMSE interval is that tight relative to it, ``runs`` at most."""
         from tracklab.worlds import tracking
 
+        target = target_precision or self.target_precision
         return tracking.run(self.structure(chunk), self.params(), runs or self.runs, self.seed if seed is None else seed,
-                            progress=progress, precision=precision or self.precision)
+                            progress=progress, precision=precision or self.precision, target=target, level=self.level)
 
     def memory_bytes(self, runs=None, chunk=None) -> float:
         """A lower bound on the bytes a run needs: one chunk's random draws (float32) for every
@@ -159,12 +167,14 @@ class Experiment:
         check(self.path or "tracklab.experiment", self.memory_bytes(runs), limit, f"a chunk of runs x {self.steps} steps",
               "set a smaller experiment.chunk, or fewer experiment.steps")
 
-    def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None, max_memory=None):
+    def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None, max_memory=None,
+            target_precision=None):
         """Run and write the results folder; returns the statistics dictionary.
 
         The output folder and the memory need are checked before anything compiles."""
         from tracklab.report import run_into_folder, write_results
 
         return run_into_folder(self, out, runs, max_memory,
-                               lambda: self.monte_carlo(runs=runs, seed=seed, progress=progress, precision=precision),
+                               lambda: self.monte_carlo(runs=runs, seed=seed, progress=progress, precision=precision,
+                                                        target_precision=target_precision),
                                lambda res, tmp: write_results(self, res, tmp, figures=figures))

@@ -23,8 +23,10 @@ chunk of runs, ``chunk(params, keys, live, exclude) -> sums``, plus a hashable
   How the parts of a chunk, of the devices and of the chunks are combined follows from each leaf's
   name (``combine_rule``): ``max…``/``min…`` are maxima/minima, ``_example…``
   and ``example…`` belong to run 0 and are kept from the first chunk,
-  the top-level ``diverged_runs`` (lanes, B) flags per run, everything else adds
-  up. A world that reports ``diverged_runs`` has its chunk run again with those runs
+  the top-level ``diverged_runs`` (lanes, B) flags per run, the top-level
+  ``per_run`` holds per-run samples (``values`` (lanes, Q, B), ``ok`` (lanes, B),
+  optionally ``kept`` (lanes, K, B)) streamed into ``samples.RunSamples``, everything
+  else adds up. A world that reports ``diverged_runs`` has its chunk run again with those runs
   excluded from the start (a run drops out of the sums only from the step it
   turns bad otherwise).
 
@@ -44,6 +46,8 @@ from typing import Any, Callable, Hashable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from tracklab.montecarlo.samples import RunSamples
 
 
 class World(NamedTuple):
@@ -65,13 +69,14 @@ class Outcome:
     wall_s: float  # the whole call
     compile_s: float  # tracing, lowering and compiling (or loading from the persistent cache)
     chunks: int
+    samples: RunSamples | None = None  # the per-run samples' moments, when the world gives them
 
 
 def combine_rule(name: str) -> str:
     """How a sums leaf named ``name`` is combined over parts: "max", "min", "first", "runs" or "add"."""
     if name.startswith(("_example", "example")):
         return "first"
-    if name == "diverged_runs":
+    if name in ("diverged_runs", "per_run"):
         return "runs"
     if name.startswith("max"):
         return "max"
@@ -204,13 +209,20 @@ def program(world: World, params, precision: str = "float64", points: int | None
 
 
 class Accumulator:
-    """Host-side sums over chunks, in float64, by each leaf's ``combine_rule``."""
+    """Host-side sums over chunks, in float64, by each leaf's ``combine_rule``; per-run samples
+    (the top-level ``per_run``) streamed into ``samples``."""
 
     def __init__(self):
         self.total = None
+        self.samples = None
 
     def add(self, sums):
         sums = jax.tree_util.tree_map(lambda v: np.asarray(v), sums)
+        if isinstance(sums, dict) and "per_run" in sums:
+            sums = dict(sums)
+            per_run = sums.pop("per_run")
+            self.samples = self.samples or RunSamples()
+            self.samples.add(per_run["values"], per_run["ok"], per_run.get("kept"))
         if self.total is None:
             self.total = jax.tree_util.tree_map_with_path(
                 lambda p, v: v if combine_rule(_leaf_name(p)) == "first" else np.asarray(v, np.float64), sums)
@@ -242,13 +254,16 @@ def pop_diverged(sums: dict):
 
 
 def run(world: World, params, runs: int, key, *, precision: str = "float64", points: int | None = None,
-        progress: Callable[[int, int], None] | None = None) -> Outcome:
+        progress: Callable[[int, int], None] | None = None,
+        enough: Callable[[Any, RunSamples | None, int], bool] | None = None) -> Outcome:
     """Run ``runs`` Monte-Carlo runs of ``world`` with ``params``, chunk by chunk; the sums of all runs.
 
     ``key``: an integer seed or a JAX key. ``precision = "float32"`` traces and runs the world in
     single precision (JAX's 64-bit mode off for it); the sums are added on the host in float64
     either way. ``points``: ``params`` holds that many parameter sets along a leading axis, and
     every sum has that leading axis. ``progress(done, runs)`` is called after every chunk.
+    ``enough(sums, samples, done)``, when given, is asked after every chunk: the run stops as soon
+    as it says yes (``runs`` is then the most it may take), and ``Outcome.runs`` is what ran.
     """
     t_start = time.perf_counter()
     with jax.enable_x64(precision == "float64"):
@@ -273,6 +288,10 @@ def run(world: World, params, runs: int, key, *, precision: str = "float64", poi
             if flags is not None and flags.any():  # the chunk again, those runs left out from their first step
                 sums, _ = pop_diverged(combined(fn(*args, jnp.asarray(flags))))
             acc.add(sums)
+            done = min((c + 1) * B, runs)
             if progress:
-                progress(min((c + 1) * B, runs), runs)
-    return Outcome(acc.total, runs, B, time.perf_counter() - t_start, compile_s, n_chunks)
+                progress(done, runs)
+            if enough is not None and done < runs and enough(acc.total, acc.samples, done):
+                runs, n_chunks = done, c + 1
+                break
+    return Outcome(acc.total, runs, B, time.perf_counter() - t_start, compile_s, n_chunks, acc.samples)

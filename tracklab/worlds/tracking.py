@@ -37,6 +37,8 @@ from tracklab import random
 from tracklab.filters import build
 from tracklab.filters.core import Filter, Meas, Prior, trace_problem
 from tracklab.filters.fusion import view_of
+from tracklab.intervals import LEVEL, half_width, value_and_gradient
+from tracklab.metrics import REPORT_WINDOW
 from tracklab.linalg import elementwise_products, mahalanobis2, mahalanobis2_logdet, norm, sum_elements
 from tracklab.models import MODELS, cv, cv_index, interleaved
 from tracklab.montecarlo import runner
@@ -180,6 +182,13 @@ class TrackingParams(NamedTuple):
     filters: list  # each filter's parameter pytree
 
 
+def with_report_window(masks: dict, steps: int) -> dict:
+    """Named step masks with the report window first (all steps when none is named)."""
+    masks = dict(masks)
+    report = masks.pop(REPORT_WINDOW, np.ones(steps, bool))
+    return {REPORT_WINDOW: np.asarray(report, bool)} | masks
+
+
 def windows_of(masks: dict | None) -> tuple:
     """Named step masks as a hashable structure field."""
     return tuple((name, tuple(bool(b) for b in np.asarray(m))) for name, m in (masks or {}).items())
@@ -201,6 +210,10 @@ class MonteCarloResult:
     axes: tuple[str, ...] = ("x", "y", "z")  # names of the reporting frame's position axes
     units: tuple[str, str] = ("m", "m/s")  # of position and velocity
     windows: list[str] = field(default_factory=list)  # named windows of the prediction-error maxima
+    samples: Any = None  # the per-run samples' moments (montecarlo.samples.RunSamples), lanes in ``labels`` order
+    sample_names: list = field(default_factory=list)  # (name, width) of each lane's samples (``sample_names``)
+    report_window: tuple[int, int] | None = None  # 1-based steps the samples average over
+    auto: dict | None = None  # runs chosen by a target precision: {target, max_runs, reached}
 
 
 def _split_keys(keys):
@@ -220,13 +233,14 @@ class _RunErrors(NamedTuple):
     bad: Any  # bool: NaN/inf estimate, NEES or NIS
     logdet_s: Any  # log det S, 0 where no update
     e_pred: Any  # (d,) one-step position prediction error
+    var: Any  # (2d,) the filter's own variances of e (the diagonal of its covariance), CV layout
 
     @classmethod
     def zeros(cls, d, B, dtype):
         """In the place of the errors before the first step (the scan's first carry)."""
         z = lambda *shape: jnp.zeros(shape + (B,), dtype)
         no = jnp.zeros((B,), bool)
-        return cls(z(2 * d), z(), z(), no, z(), no, z(), z(d))
+        return cls(z(2 * d), z(), z(), no, z(), no, z(), z(d), z(2 * d))
 
 
 @dataclass(frozen=True)
@@ -266,7 +280,7 @@ def run_errors(out, truth_k, pv, dtype) -> _RunErrors:
         e_pred = jnp.full((len(pv) // 2,), jnp.nan, dtype)
     # fixed dtypes, so that the scan's carry is known without tracing the step (_RunErrors.zeros)
     f = lambda a: jnp.asarray(a, dtype)
-    return _RunErrors(f(e), f(nees), f(nis), valid, f(dof), bad, f(logdet_s), f(e_pred))
+    return _RunErrors(f(e), f(nees), f(nis), valid, f(dof), bad, f(logdet_s), f(e_pred), f(jnp.diagonal(Pe)))
 
 
 def _lane(label, real: Realised, params, P0_cv, pattern, detect_all, windows, dtype) -> _Lane:
@@ -310,9 +324,38 @@ def _view_pattern(view, pattern, dtype):
 # a step's sums over the runs and maxima over the runs, each one vector per filter inside the
 # scan (one reduction each, one output each), cut into the named quantities after it
 _SUMS = ("count", "sum_pos", "sum_vel", "sumsq_pos", "sumsq_vel", "sum_nees", "sum_nis", "count_nis", "dof_nis",
-         "sum_logdet_s", "sum_pred", "sumsq_pred")
+         "sum_logdet_s", "sum_pred", "sumsq_pred", "sum4_pos", "sum4_vel", "sumsq2_pos", "sumsq2_vel")
 _MAXIMA = ("max_abs_pos", "max_abs_vel", "max_err_pos", "max_err_vel")
-_PER_RUN_SCALARS = {"count", "sum_nees", "sum_nis", "count_nis", "dof_nis", "sum_logdet_s", "max_err_pos", "max_err_vel"}
+_PER_RUN_SCALARS = {"count", "sum_nees", "sum_nis", "count_nis", "dof_nis", "sum_logdet_s", "max_err_pos", "max_err_vel",
+                    "sumsq2_pos", "sumsq2_vel"}
+
+
+def sample_names(d: int, windows) -> list[tuple[str, int]]:
+    """The per-run samples of a filter (name, width), in order: over the report window its
+    mean-square position and velocity error (total, then per axis), mean error per axis
+    (position, velocity), mean NEES, mean NIS and updates per step (the NIS is their ratio);
+    per named window the mean-square one-step prediction error (total, per axis); then per
+    named window the run's largest prediction error (per axis, then the norm)."""
+    names = [("sq_pos", 1), ("sq_vel", 1), ("sq_pos_axes", d), ("err_pos", d), ("err_vel", d), ("nees", 1),
+             ("nis", 1), ("updates", 1)]
+    for w in windows:
+        names += [(f"sq_pred@{w}", 1), (f"sq_pred_axes@{w}", d)]
+    return names + [(f"max_pred@{w}", d + 1) for w in windows]
+
+
+def _run_samples(r: _RunErrors, w_report, w_k):
+    """One step's contributions (Q, B) to each run's sums of the accumulated samples (all of
+    ``sample_names`` but the maxima): ``w_report`` whether the step is in the report window,
+    ``w_k`` (windows,) whether it is in each named window."""
+    ep, ev = r.e[0::2], r.e[1::2]
+    upd = r.valid.astype(ep.dtype)
+    sq_pred = r.e_pred**2
+    report = jnp.concatenate([jnp.sum(ep**2, 0)[None], jnp.sum(ev**2, 0)[None], ep**2, ep, ev, r.nees[None],
+                              (r.nis * upd)[None], upd[None]])
+    rows = [w_report * report]
+    for j in range(w_k.shape[0]):
+        rows.append(w_k[j] * jnp.concatenate([jnp.sum(sq_pred, 0)[None], sq_pred]))
+    return jnp.concatenate(rows)
 
 
 def _lane_sums(r: _RunErrors, ok, runmax, w_k, dtype):
@@ -339,6 +382,10 @@ def _lane_sums(r: _RunErrors, ok, runmax, w_k, dtype):
         "sum_logdet_s": (jnp.where(ok, r.logdet_s, 0.0) * updf)[None],
         "sum_pred": e_pred,  # one-step prediction error, per axis
         "sumsq_pred": e_pred**2,
+        "sum4_pos": ep**4,  # for the per-step RMSE's interval
+        "sum4_vel": ev**4,
+        "sumsq2_pos": jnp.sum(ep**2, 0)[None] ** 2,
+        "sumsq2_vel": jnp.sum(ev**2, 0)[None] ** 2,
     }
     top = {
         "max_abs_pos": jnp.abs(ep),
@@ -436,12 +483,17 @@ def _stand_in(tree):
 
 def _chunk(structure: TrackingStructure):
     """The tracking world's chunk: (params, keys, live, exclude) -> sums (packed; see ``unpack``)."""
-    windows = structure.window_masks()
     elementwise = structure.elementwise
 
     def local(params: TrackingParams, keys, live, exclude):  # the runs of ``keys`` on one device
         scenario, sensor = params.scenario, params.sensor
         d, T, dt = scenario.dim, scenario.steps, scenario.dt
+        windows = with_report_window(structure.window_masks(), T)
+        names = sample_names(d, windows)
+        n_acc = sum(w for n, w in names if not n.startswith("max_pred@"))
+        i_report = list(windows).index(REPORT_WINDOW)
+        lengths = np.concatenate([np.full(w, windows[n.split("@")[1]].sum() if "@" in n else windows[REPORT_WINDOW].sum())
+                                  for n, w in names if not n.startswith("max_pred@")])
         P0_cv = params.P0
         L0 = jnp.linalg.cholesky(P0_cv)
         dtype = L0.dtype
@@ -500,15 +552,18 @@ def _chunk(structure: TrackingStructure):
             steps.append(jax.vmap(ln.body, in_axes=(axes, (0, 0 if truth_batched else None, None, None, None)),
                                   out_axes=(axes, -1)))
             state0 = jax.vmap(ln.init, out_axes=axes)(prior)
-            nothing = (_RunErrors.zeros(d, B, dtype), jnp.zeros((len(ln.names),), bool), jnp.zeros((2 * d,), dtype))
-            carries.append((state0, nothing, jnp.zeros((B,), bool), jnp.zeros((len(ln.names), d + 1, B), dtype)))
+            nothing = (_RunErrors.zeros(d, B, dtype), jnp.zeros((len(ln.names),), bool), jnp.zeros((4 * d,), dtype))
+            carries.append((state0, nothing, jnp.zeros((B,), bool),
+                            (jnp.zeros((len(ln.names), d + 1, B), dtype), jnp.zeros((n_acc, B), dtype))))
 
-        def lane_stats(i, pending, bad_any, runmax):
-            per_run, w_k, x_first = pending
+        def lane_stats(i, pending, bad_any, per_run_acc):
+            per_run, w_k, first = pending
+            runmax, acc = per_run_acc
             bad_any = bad_any | per_run.bad
             ok = live & ~exclude[i] & ~bad_any
             sums, maxima, runmax = _lane_sums(per_run, ok, runmax, w_k, dtype)
-            return (sums, maxima, x_first), bad_any, runmax
+            acc = acc + _run_samples(per_run, w_k[i_report].astype(dtype), w_k.astype(dtype))
+            return (sums, maxima, first), bad_any, (runmax, acc)
 
         def scan_step(carry, inp):
             truth_prev, lane_carries = carry
@@ -542,7 +597,8 @@ def _chunk(structure: TrackingStructure):
                 with elementwise_products(per_run_state[i]):
                     state, per_run = step(state, (z_f, truth_k, t_k, present_k, reports_k))
                 x_first = per_run.e[:, 0] + (truth_k[0] if truth_batched else truth_k)  # run 0's estimate
-                new_carries.append((state, (per_run, w_k, x_first), bad_any, runmax))
+                first = jnp.concatenate([x_first, per_run.var[:, 0]])  # and its variances
+                new_carries.append((state, (per_run, w_k, first), bad_any, runmax))
             return (truth_k if (stream and scenario.per_run) else None, new_carries), out
 
         lane_in = [(ln.present, jnp.asarray(ln.reports), jnp.asarray(ln.wmask)) for ln in lanes]
@@ -554,18 +610,25 @@ def _chunk(structure: TrackingStructure):
                                                     out["_example"]["truth"]])
         if not with_bound:
             out["_info"] = jnp.zeros((T, d, d), dtype)
-        flags = []
-        for i, (ln, (_, pending, bad_any, runmax)) in enumerate(zip(lanes, finals)):
-            last, bad_any, runmax = lane_stats(i, pending, bad_any, runmax)  # the last step's sums
-            sums, maxima, x_first = (jnp.concatenate([a[1:], b[None]]) for a, b in zip(out[ln.label], last))
-            out[ln.label] = {"sums": sums, "maxima": maxima, "example_x": x_first}  # cut by _unpack
+        flags, values, oks = [], [], []
+        for i, (ln, (_, pending, bad_any, per_run_acc)) in enumerate(zip(lanes, finals)):
+            last, bad_any, (runmax, acc) = lane_stats(i, pending, bad_any, per_run_acc)  # the last step's sums
+            sums, maxima, first = (jnp.concatenate([a[1:], b[None]]) for a, b in zip(out[ln.label], last))
+            out[ln.label] = {"sums": sums, "maxima": maxima, "example_x": first[:, :2 * d],
+                             "example_var": first[:, 2 * d:]}  # cut by _unpack
             ok = live & ~exclude[i] & ~bad_any
             for j, name in enumerate(ln.names):  # sum over runs of each run's largest |error| (per axis, then norm)
                 out[ln.label][f"runmax_pred@{name}"] = jnp.sum(jnp.where(ok, runmax[j], 0.0), axis=-1)
             out[ln.label]["diverged"] = jnp.sum((live & bad_any).astype(dtype))
             flags.append(live & bad_any)
+            values.append(jnp.concatenate([acc / jnp.asarray(lengths, dtype)[:, None],
+                                           runmax.reshape(-1, B)]))
+            oks.append(ok)
         # (filters, B): the runner runs the chunk again without them
         out["diverged_runs"] = jnp.stack(flags) if flags else jnp.zeros((0, B), bool)
+        if values:  # each run's time-averaged samples, for intervals and paired comparisons
+            values = jnp.stack(values)
+            out["per_run"] = {"values": values, "ok": jnp.stack(oks), "kept": jnp.sqrt(values[:, :1])}
         return out
 
 
@@ -583,7 +646,8 @@ def recorded_sums(out, truth, layout, windows: dict | None = None) -> dict:
     dtype = truth.dtype
     N, T = truth.shape[:2]
     d = len(pv) // 2
-    names = list(windows or {})
+    windows = with_report_window(windows or {}, T)
+    names = list(windows)
     wmask = jnp.asarray(np.stack([np.asarray(windows[n], bool) for n in names], axis=1) if names
                         else np.zeros((T, 0), bool))
     xs = (jax.tree_util.tree_map(lambda a: jnp.swapaxes(jnp.asarray(a), 0, 1), out), jnp.swapaxes(truth, 0, 1), wmask)
@@ -594,18 +658,27 @@ def recorded_sums(out, truth, layout, windows: dict | None = None) -> dict:
 
     diverged, _ = jax.lax.scan(bad_of, jnp.zeros((N,), bool), xs)
 
-    def step(runmax, inp):
+    def step(carry, inp):
+        runmax, acc = carry
         out_k, truth_k, w_k = inp
         r = errors(out_k, truth_k)
         sums, maxima, runmax = _lane_sums(r, ~diverged, runmax, w_k, dtype)
-        return runmax, (sums, maxima)
+        acc = acc + _run_samples(r, w_k[0].astype(dtype), w_k.astype(dtype))
+        return (runmax, acc), (sums, maxima)
 
-    runmax, (sums, maxima) = jax.lax.scan(step, jnp.zeros((len(names), d + 1, N), dtype), xs)
+    acc_names = [(n, w) for n, w in sample_names(d, windows) if not n.startswith("max_pred@")]
+    lengths = np.concatenate([np.full(w, windows[n.split("@")[1] if "@" in n else REPORT_WINDOW].sum())
+                              for n, w in acc_names])
+    carry0 = (jnp.zeros((len(names), d + 1, N), dtype), jnp.zeros((len(lengths), N), dtype))
+    (runmax, acc), (sums, maxima) = jax.lax.scan(step, carry0, xs)
     res = _named(sums, _SUMS, d) | _named(maxima, _MAXIMA, d)
     for j, name in enumerate(names):
         res[f"runmax_pred@{name}"] = jnp.sum(jnp.where(~diverged, runmax[j], 0.0), axis=-1)
     res["diverged"] = jnp.sum(diverged.astype(dtype))
     res["example_x"] = jnp.asarray(out.x)[0][:, pv]
+    res["example_var"] = jnp.diagonal(jnp.asarray(out.P)[0][:, pv[:, None], pv[None, :]], axis1=-2, axis2=-1)
+    values = jnp.concatenate([acc / jnp.asarray(lengths, dtype)[:, None], runmax.reshape(-1, N)])
+    res["per_run"] = {"values": values, "ok": ~diverged, "kept": jnp.sqrt(values[:1])}
     return jax.tree_util.tree_map(np.asarray, res)
 
 
@@ -654,25 +727,54 @@ def default_chunk(scenario, sensor, budget=2**28) -> int:
     return int(np.clip(budget // (8 * scenario.steps * width), 64, 1000 * jax.device_count()))
 
 
+def precision_reached(samples, target: float, level: float = LEVEL) -> bool:
+    """Whether every filter's time-averaged position RMSE has its ``level`` interval within
+    ± ``target`` of itself (relative); a filter with no healthy run does not hold it back."""
+    if samples is None:
+        return False
+    lanes = samples.n.shape[-1]
+    for li in range(lanes):
+        own = samples.pair(li, li)
+        if own.n == 0:
+            continue
+        v, g = value_and_gradient(("root", [0]), own.mean_f)  # sq_pos is the first sample
+        if not half_width(g, own.cov_ff, own.n, level) <= target * v:
+            return False
+    return True
+
+
 def run(structure: TrackingStructure, params: TrackingParams, runs: int, key, *, progress=None,
-        precision: str = "float64", points: int | None = None):
+        precision: str = "float64", points: int | None = None, target: float | None = None, level: float = LEVEL):
     """Per-step error statistics of the structure's filters over ``runs`` Monte-Carlo runs: a
     ``MonteCarloResult``, or with ``points`` (params stacked along a leading axis, as a sweep's
-    grid) a list of them, one per parameter set, all on the same runs."""
-    out = runner.run(world(structure), params, runs, key, precision=precision, points=points, progress=progress)
+    grid) a list of them, one per parameter set, all on the same runs. With ``target``, chunks
+    run until ``precision_reached`` (``runs`` at most): the result's ``auto`` says how it went."""
+    enough = None
+    if target is not None and points is None:
+        enough = lambda sums, samples, done: precision_reached(samples, target, level)
+    out = runner.run(world(structure), params, runs, key, precision=precision, points=points, progress=progress,
+                     enough=enough)
     if points is None:
-        return result(structure, params, out.sums, out)
-    return [result(structure, runner.pick(params, j), runner.pick(out.sums, j), out) for j in range(points)]
+        res = result(structure, params, out.sums, out)
+        if target is not None:
+            res.auto = {"target": target, "max_runs": runs, "reached": precision_reached(out.samples, target, level)}
+        return res
+    return [result(structure, runner.pick(params, j), runner.pick(out.sums, j), out, j) for j in range(points)]
 
 
-def result(structure, params, sums, out: runner.Outcome) -> MonteCarloResult:
-    """The ``MonteCarloResult`` of one parameter set's sums (the runner's, for ``out.runs`` runs)."""
+def result(structure, params, sums, out: runner.Outcome, point: int | None = None) -> MonteCarloResult:
+    """The ``MonteCarloResult`` of one parameter set's sums (the runner's, for ``out.runs`` runs;
+    ``point``: which grid point's samples, when the run had several)."""
     scenario = params.scenario
     sums = unpack(sums, scenario.dim)
     info = sums.pop("_info")
     ex = sums.pop("_example")
     example = {"truth": np.asarray(ex["truth"]), "z": np.asarray(ex["z"])}
     example["x"] = {label: np.asarray(sums[label].pop("example_x")) for label in structure.labels}
+    example["var"] = {label: np.asarray(sums[label].pop("example_var")) for label in structure.labels}
+    windows = with_report_window(structure.window_masks(), scenario.steps)
+    report = np.flatnonzero(windows[REPORT_WINDOW])
+    samples = out.samples if (point is None or out.samples is None) else out.samples.point(point)
     return MonteCarloResult(
         runs=out.runs, steps=scenario.steps, dt=float(scenario.dt), dim=scenario.dim,
         sums={label: sums[label] for label in structure.labels},
@@ -680,7 +782,9 @@ def result(structure, params, sums, out: runner.Outcome) -> MonteCarloResult:
         wall_s=out.wall_s, compile_s=out.compile_s, labels=structure.labels,
         kinds={f.label: f.kind for f in structure.filters}, example=example,
         axes=tuple(getattr(scenario, "axes", ("x", "y", "z")[: scenario.dim])),
-        units=tuple(getattr(scenario, "units", ("m", "m/s"))), windows=[n for n, _ in structure.windows])
+        units=tuple(getattr(scenario, "units", ("m", "m/s"))), windows=[n for n, _ in structure.windows],
+        samples=samples, sample_names=sample_names(scenario.dim, windows),
+        report_window=(int(report[0]) + 1, int(report[-1]) + 1))
 
 
 def monte_carlo(
@@ -737,11 +841,16 @@ def pcrlb(scenario, P0_cv, info_pos):
     Jz = jnp.zeros((len(info_pos),) + P0_cv.shape).at[:, pos[:, None], pos[None, :]].set(jnp.asarray(info_pos))
 
     Fs = F if F.ndim == 3 else jnp.broadcast_to(F, (len(info_pos),) + F.shape)
+    return np.asarray(_pcrlb_recursion(jnp.asarray(P0_cv), Q, Fs, Jz))
+
+
+@jax.jit
+def _pcrlb_recursion(P0, Q, Fs, Jz):
+    """J⁻¹ per step (compiled once per shape, not per call)."""
 
     def step(Jinv, inp):
         Jz_k, F_k = inp
         Jinv = jnp.linalg.inv(jnp.linalg.inv(Q + F_k @ Jinv @ F_k.T) + Jz_k)
         return Jinv, Jinv
 
-    _, out = jax.lax.scan(step, jnp.asarray(P0_cv), (Jz, Fs))
-    return np.asarray(out)
+    return jax.lax.scan(step, P0, (Jz, Fs))[1]

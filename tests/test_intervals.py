@@ -1,0 +1,201 @@
+"""Monte-Carlo uncertainty: intervals that cover, paired comparisons, runs = "auto", percentiles."""
+
+import math
+
+import numpy as np
+import pytest
+
+import tracklab
+from tracklab.config import load_experiment
+from tracklab.intervals import t_quantile, wilson
+from tracklab.metrics import statistics
+from tracklab.models import cv
+from tracklab.worlds.tracking import precision_reached
+
+LINEAR = """
+[experiment]
+name = "linear_small"
+runs = 20
+chunk = 20
+dt = 1.0
+steps = 20
+
+[scenario]
+kind = "crossing"
+speed = 100.0
+offset = 2000.0
+start_x = -5000.0
+accel_sigma = 2.0
+
+[sensor]
+kind = "cartesian"
+sigma = [30.0, 60.0]
+
+[prior]
+pos_sigma = 50.0
+vel_sigma = 10.0
+
+[[filter]]
+kind = "kf"
+label = "KF"
+accel_sigma = 2.0
+"""
+
+
+def write(tmp_path, text, name="exp.toml"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def riccati_rmse(steps, dt=1.0, q=2.0, sigma=(30.0, 60.0), p0=(50.0, 10.0)):
+    """The matched KF's true time-averaged position RMSE: sqrt of the mean over the steps of
+    tr(P_pos), its covariance from the Riccati recursion (NumPy)."""
+    m = cv(2, dt)
+    F, Q = np.asarray(m.F), np.asarray(m.Q(q**2))
+    H = np.zeros((2, 4))
+    H[0, 0] = H[1, 2] = 1.0
+    R = np.diag(np.square(sigma))
+    P = np.diag([p0[0] ** 2, p0[1] ** 2] * 2)
+    mse = []
+    for _ in range(steps):
+        P = F @ P @ F.T + Q
+        K = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
+        P = (np.eye(4) - K @ H) @ P
+        mse.append(P[0, 0] + P[2, 2])
+    return math.sqrt(np.mean(mse))
+
+
+def binomial_band(n, p, z=3.29):
+    """p ± z binomial standard deviations of a fraction of n (z = 3.29: 99.9 %)."""
+    sd = math.sqrt(p * (1 - p) / n)
+    return p - z * sd, p + z * sd
+
+
+def test_t_quantile_and_wilson_against_known_values():
+    assert t_quantile(0.95, 1) == pytest.approx(12.7062047, rel=1e-6)
+    assert t_quantile(0.95, 10) == pytest.approx(2.2281389, rel=1e-6)
+    assert t_quantile(0.99, 30) == pytest.approx(2.7499957, rel=1e-6)
+    assert t_quantile(0.95, 1e9) == pytest.approx(1.959964, rel=1e-6)
+    lo, hi = wilson(0, 100)
+    assert lo == 0.0 and hi == pytest.approx(0.036994, rel=1e-4)  # 1.96² / (100 + 1.96²)
+    lo, hi = wilson(5, 10)
+    assert lo == pytest.approx(1 - hi) and 0.2 < lo < 0.25
+
+
+def test_rmse_interval_covers_the_riccati_value_95_percent_of_the_time(tmp_path):
+    """200 independent 20-run Monte-Carlo runs of a matched linear KF: the true time-averaged
+    RMSE (from the Riccati recursion) lies inside the 95 % interval 95 % ± a binomial margin
+    of the time. The NEES's interval covers its true value (the state dimension, 4) too."""
+    exp = load_experiment(write(tmp_path, LINEAR))
+    truth = riccati_rmse(20)
+    reps = 200
+    covered = covered_nees = 0
+    for seed in range(reps):
+        st = statistics(exp.monte_carlo(seed=seed), exp.window)
+        f = st["filters"]["KF"]
+        v, hw = f["summary"]["rmse_pos"], f["half_width"]["rmse_pos"]
+        covered += abs(v - truth) <= hw
+        covered_nees += abs(f["summary"]["nees"] - 4.0) <= f["half_width"]["nees"]
+    lo, hi = binomial_band(reps, 0.95)
+    assert lo <= covered / reps <= hi, (covered, truth)
+    assert lo <= covered_nees / reps <= hi, covered_nees
+
+
+PAIRED = LINEAR.replace("runs = 20\nchunk = 20", "runs = 400\nchunk = 200") + """
+[[filter]]
+kind = "kf"
+label = "KF again"
+accel_sigma = 2.0
+
+[[filter]]
+kind = "kf"
+label = "KF low q"
+accel_sigma = 0.7
+"""
+
+
+def test_paired_interval_is_zero_against_itself_and_narrower_than_unpaired(tmp_path):
+    exp = load_experiment(write(tmp_path, PAIRED))
+    st = statistics(exp.monte_carlo(), exp.window)
+    f = st["filters"]
+    base = f["KF"]["paired"]
+    assert base["baseline"] == "KF" and base["runs"] == 400
+    for key in ("rmse_pos", "rmse_vel", "nees", "pred_err_rms"):
+        assert base[key]["difference"] == 0.0 and base[key]["half_width"] == 0.0, key
+        same = f["KF again"]["paired"][key]  # the same filter under another label: the same numbers
+        assert same["difference"] == pytest.approx(0.0, abs=1e-9 * f["KF"]["summary"][key])
+        assert same["half_width"] <= 1e-6 * f["KF"]["half_width"][key] and not same["significant"]
+        other = f["KF low q"]["paired"][key]
+        unpaired = math.hypot(f["KF low q"]["half_width"][key], f["KF"]["half_width"][key])
+        assert 0 < other["half_width"] < unpaired, key
+        # the difference is that of the two summaries (both filters healthy in every run)
+        assert other["difference"] == pytest.approx(f["KF low q"]["summary"][key] - f["KF"]["summary"][key], rel=1e-9)
+    # a baseline named in [report]
+    exp = load_experiment(write(tmp_path, PAIRED + '\n[report]\nbaseline = "KF low q"\n', "b.toml"))
+    st = statistics(exp.monte_carlo(), exp.window, level=exp.level, baseline=exp.baseline)
+    assert st["filters"]["KF"]["paired"]["baseline"] == "KF low q"
+    assert st["filters"]["KF low q"]["paired"]["rmse_pos"]["half_width"] == 0.0
+
+
+def test_auto_runs_stop_once_the_target_is_met_and_equal_a_fixed_run(tmp_path):
+    text = LINEAR.replace("runs = 20\nchunk = 20", 'runs = "auto"\ntarget_precision = 0.03\nmax_runs = 20000\nchunk = 50')
+    exp = load_experiment(write(tmp_path, text))
+    auto = exp.monte_carlo()
+    n = auto.runs
+    assert auto.auto == {"target": 0.03, "max_runs": 20000, "reached": True}
+    assert 50 < n < 20000 and n % 50 == 0
+    assert precision_reached(auto.samples, 0.03)
+    fixed_before = load_experiment(write(tmp_path, LINEAR.replace("runs = 20\nchunk = 20", f"runs = {n - 50}\nchunk = 50"),
+                                         "f.toml")).monte_carlo()
+    assert not precision_reached(fixed_before.samples, 0.03)  # one chunk fewer was not enough
+    fixed = load_experiment(write(tmp_path, LINEAR.replace("runs = 20\nchunk = 20", f"runs = {n}\nchunk = 50"),
+                                  "g.toml")).monte_carlo()
+    a, b = statistics(auto, exp.window), statistics(fixed, exp.window)
+    assert a["filters"]["KF"]["summary"] == b["filters"]["KF"]["summary"]
+    assert a["filters"]["KF"]["half_width"] == b["filters"]["KF"]["half_width"]
+    for k, v in a["filters"]["KF"]["series"].items():
+        np.testing.assert_array_equal(v, b["filters"]["KF"]["series"][k])
+    rel = a["filters"]["KF"]["half_width"]["rmse_pos"] / a["filters"]["KF"]["summary"]["rmse_pos"]
+    assert rel <= 0.03
+
+
+def test_auto_runs_from_the_command_line(tmp_path, capsys):
+    from tracklab.cli import main
+
+    p = write(tmp_path, LINEAR.replace("chunk = 20", "chunk = 100"))
+    assert main(["run", str(p), "--precision", "0.05", "--runs", "5000", "--no-figures", "--out", str(tmp_path / "o")]) == 0
+    import json
+
+    doc = json.loads((tmp_path / "o" / "stats.json").read_text())
+    assert doc["auto"]["reached"] and doc["runs"] < 5000 and doc["runs"] % 100 == 0
+    assert "Runs chosen automatically" in (tmp_path / "o" / "table.md").read_text()
+    with pytest.raises(SystemExit) as e:
+        main(["run", str(p), "--precision", "2"])
+    assert e.value.code == 2
+    assert "--precision" in capsys.readouterr().err
+
+
+def test_percentiles_equal_numpy_on_each_runs_error():
+    """evaluate() on recordings whose per-run errors are known: the runs' RMS position errors'
+    percentiles equal NumPy's, and the distribution kept for the CDF runs from the least to the
+    largest of them."""
+    rng = np.random.default_rng(4)
+    N, T = 37, 15
+    truth = rng.normal(size=(N, T, 4)) * 10
+    x = truth + rng.normal(size=(N, T, 4)) * rng.uniform(0.5, 3.0, size=(N, 1, 1))
+    P = np.broadcast_to(np.eye(4) * 4.0, (N, T, 4, 4))
+    res = tracklab.FilterResult(x=x, P=P, x_pred=None, nu=None, S=None, valid=None, dof=None)
+    doc = tracklab.evaluate({"f": res}, truth, dt=1.0)
+    e = x - truth
+    per_run = np.sqrt(np.mean(e[..., 0] ** 2 + e[..., 2] ** 2, axis=1))
+    s = doc["filters"]["f"]["summary"]
+    np.testing.assert_allclose([s["err_pos_p50"], s["err_pos_p90"], s["err_pos_p99"]],
+                               np.percentile(per_run, [50, 90, 99]), rtol=1e-12)
+    cdf = doc["filters"]["f"]["cdf"]
+    assert cdf["err_pos"][0] == pytest.approx(per_run.min()) and cdf["err_pos"][-1] == pytest.approx(per_run.max())
+    # the RMSE interval is the delta-method t interval of these per-run values
+    sq = per_run**2
+    hw = t_quantile(0.95, N - 1) * sq.std(ddof=1) / math.sqrt(N) / (2 * math.sqrt(sq.mean()))
+    assert s["rmse_pos"] == pytest.approx(math.sqrt(sq.mean()), rel=1e-12)
+    assert doc["filters"]["f"]["half_width"]["rmse_pos"] == pytest.approx(hw, rel=1e-9)
