@@ -141,12 +141,14 @@ def test_tune_runs_on_a_closed_loop_and_writes_a_file_run_accepts(tmp_path, worl
     exp = _load(tmp_path, world, {"airborne": AIRBORNE, "servo": SERVO}[world])
     names = params.split(",")
     out = tmp_path / f"{world}_tuned.toml"
-    check_tune(exp, names, None, out, 4)
+    check_tune(exp, names, None, out, 4, folder=tmp_path / "report")
     lines = []
     res = run_tune(exp, names, steps=2, lr=0.1, loss=loss, runs_per_step=4, labels=None, out_toml=out,
-                   log=lines.append, eval_runs=4)
+                   folder=tmp_path / "report", log=lines.append, eval_runs=4)
     assert not res.stopped and len(res.history) == 2
-    assert all(np.isfinite(v) and g > 0 for _, v, g in res.history)  # a gradient flows through the closed loop
+    # a gradient flows through the closed loop; each tuned lane has its own loss
+    assert all(all(np.isfinite(v) for v in per.values()) and g > 0 for _, per, g in res.history)
+    assert set(res.eval_tuned) == set(res.history[0][1]) and (tmp_path / "report" / "tune.json").exists()
     tuned = load_experiment(out)
     start = {n: float(v) for n, v in next(iter(res.initial.values())).items()}
     got = {n: float(v) for n, v in next(iter(res.params.values())).items()}

@@ -1,7 +1,7 @@
 """Imports go downward only: each part of the package uses the parts below it, never one above.
 
 Bottom to top: the building blocks (filters, models, sensors, scenarios, the runner, …); the
-worlds; the report; the validated experiments; the experiment-file parsers (config); the
+worlds; the report and its figures; the validated experiments; the experiment-file parsers (config); the
 studies (tune, sweep); the command line; the public API. A circle, or a world importing its
 parser, fails here with the module and the import that goes up.
 """
@@ -13,9 +13,9 @@ import tracklab
 
 LAYERS = [
     {"errors", "runtime", "pytree", "linalg", "random", "toml_fields", "memory", "output", "models", "sensors", "scenarios",
-     "metrics", "montecarlo", "filters", "filtering"},
+     "metrics", "intervals", "montecarlo", "filters", "filtering"},
     {"worlds", "airborne", "servo"},
-    {"report"},
+    {"report", "figures"},
     {"experiments"},
     {"config"},
     {"tune", "sweep", "studies"},

@@ -87,8 +87,9 @@ def test_reproduce_runs_everything_and_rebuilds_the_combined_table(tmp_path):
     tuned = res / "tuning" / "kf_tuned.toml"
     assert load_experiment(tuned).filters[0].label == "KF, tuned"
     assert tomllib.loads(tuned.read_text())["filter"][0]["accel_sigma"] != 1.0
-    log = (res / "tuning" / "kf_tune.log").read_text()
-    assert "step     0" in log and "held-out nll" in log
+    log = (res / "tuning" / "kf_tune" / "tune.log").read_text()
+    assert "step     0" in log and "KF: held-out nll" in log
+    assert (res / "tuning" / "kf_tune" / "loss.png").exists()
     assert (res / "tuning" / "kf_tuned" / "stats.json").exists()
     sweep_table = (res / "mismatch" / "c" / "table.md").read_text()
     assert sweep_table.count("| KF |") == 3 and sweep_table.count("| AB |") == 3
@@ -100,7 +101,8 @@ def test_table_formats(tmp_path):
     md = combined_table(folders, "md", ("rmse_pos", "runs"))
     assert md.splitlines()[0] == "| results | filter | RMSE pos | runs |" and len(md.splitlines()) == 2 + 4
     csv = combined_table(folders, "csv", ("rmse_pos",))
-    assert csv.splitlines()[0] == "results,filter,rmse_pos"
+    assert csv.splitlines()[0] == "results,filter,rmse_pos,rmse_pos_hw"  # the interval's half-width beside it
+    assert " ± " in md.splitlines()[2]
     tex = combined_table(folders, "latex", ("nees_in_bounds",))
     assert tex.startswith("\\begin{tabular}") and "\\%" in tex
     proc = subprocess.run([sys.executable, "-m", "tracklab.cli", "table", *map(str, folders), "--metrics", "nope"],

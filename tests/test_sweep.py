@@ -85,7 +85,7 @@ def test_cli_sweep(tmp_path):
 def test_a_curve_that_barely_moves_is_drawn_flat():
     """A sweep curve whose values change by a fraction of a percent gets a linear axis at least
     ±10 % about them (a log axis scaled to the data would fill the panel); a decade or more: log."""
-    from tracklab.report import pyplot
+    from tracklab.figures import pyplot
     from tracklab.sweep import _value_axis
 
     plt = pyplot()

@@ -1,5 +1,6 @@
 """Differentiable tuning: gradients through the Monte-Carlo simulation, and what tuning finds."""
 
+import json
 import subprocess
 import sys
 import textwrap
@@ -67,8 +68,9 @@ def test_gradient_matches_central_differences(tmp_path, names, loss):
     exp = load_experiment(write(tmp_path, GRAD))
     obj = objective(exp, names, loss)
     key, idx, live = jax.random.key(0), jnp.arange(64, dtype=jnp.uint32), jnp.ones(64, bool)
-    f = jax.jit(obj.loss)
-    g, _ = jax.flatten_util.ravel_pytree(jax.grad(obj.loss)(obj.theta0, key, idx, live))
+    total = lambda *a: sum(obj.losses(*a).values())
+    f = jax.jit(total)
+    g, _ = jax.flatten_util.ravel_pytree(jax.grad(total)(obj.theta0, key, idx, live))
     flat, unravel = jax.flatten_util.ravel_pytree(obj.theta0)
     checked = 0
     for i in range(len(flat)):
@@ -121,7 +123,7 @@ def test_tuned_alpha_beta_gains_reach_the_kalata_optimum(tmp_path):
     got = res.params["ab"]
     assert abs(got["alpha"] / a - 1) < 0.02, (got, a, b)
     assert abs(got["beta"] / b - 1) < 0.02, (got, a, b)
-    assert res.eval_tuned < res.eval_initial
+    assert res.eval_tuned["ab"] < res.eval_initial["ab"]
 
 
 QR = """
@@ -170,7 +172,13 @@ def test_cli_tune_writes_an_experiment_that_runs(tmp_path):
     out = tmp_path / "tuned.toml"
     proc = _cli("tune", src, "--params", "q,r", "--steps", 30, "--lr", 0.1, "--loss", "nll", "--out", out, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
-    assert "step" in proc.stdout and "held-out nll" in proc.stdout
+    assert "step" in proc.stdout and "KF: held-out nll" in proc.stdout
+    report = tmp_path / "results" / "qr_tune"  # the tuning's results folder, by default under results/
+    doc = json.loads((report / "tune.json").read_text())
+    assert doc["heldout"]["KF"]["after"] < doc["heldout"]["KF"]["before"]
+    assert len(doc["history"]["loss"]["KF"]) == 30 and doc["wall_s"] > 0
+    assert (report / "loss.png").exists() and "| KF | q |" in (report / "table.md").read_text()
+    assert not (tmp_path / "qr_tuned.toml").exists() and not list(tmp_path.glob("*_tuned.toml"))
     doc = tomllib.loads(out.read_text())
     f = doc["filter"][0]
     assert f["accel_sigma"] > 1.0 and all(s < 60.0 for s in f["sigma"])  # moved towards the truth (3, 20)

@@ -148,11 +148,13 @@ def cmd_tune(args) -> int:
     known = [e.label for e in getattr(exp, "filters", None) or getattr(exp, "trackers", None) or exp.estimators]
     if labels is not None and (not labels or any(l not in known for l in labels)):
         raise ConfigError(args.experiment, "--filters", args.filters, f"must name filter labels from: {', '.join(known)}")
-    out = Path(args.out) if args.out else Path(args.experiment).with_name(Path(args.experiment).stem + "_tuned.toml")
-    check_tune(exp, names, labels, out, args.runs_per_step, args.max_memory)
+    folder = Path(args.results) if args.results else Path("results") / f"{exp.name}_tune"
+    out = Path(args.out) if args.out else folder.with_name(f"{exp.name}_tuned.toml")  # beside the results
+    check_tune(exp, names, labels, out, args.runs_per_step, args.max_memory, folder=folder)
 
     run_tune(exp, names, steps=args.steps, lr=args.lr, loss=args.loss, runs_per_step=args.runs_per_step,
-             labels=labels, out_toml=out, log=lambda line: (raise_if_interrupted(), print(line, flush=True)), every=args.every)
+             labels=labels, out_toml=out, folder=folder,
+             log=lambda line: (raise_if_interrupted(), print(line, flush=True)), every=args.every)
     return 0
 
 
@@ -248,7 +250,9 @@ def build_parser():
     tu.add_argument("--runs-per-step", type=_positive_int, default=None, help="fresh runs per step (default 256)")
     tu.add_argument("--filters", default=None, help="comma-separated labels (default: every filter with the parameters)")
     tu.add_argument("--every", type=_positive_int, default=10, help="progress line every N steps")
-    tu.add_argument("--out", help="tuned experiment file (default: FILE_tuned.toml beside FILE)")
+    tu.add_argument("--results", help="results folder: tune.json, table.md, loss.png, tune.log "
+                                      "(default: results/<name>_tune/)")
+    tu.add_argument("--out", help="tuned experiment file (default: <name>_tuned.toml beside the results folder)")
     tu.add_argument("--max-memory", type=_size, help="refuse a tuning needing more (default: this machine's memory)")
     tu.set_defaults(func=cmd_tune)
     sw = sub.add_parser("sweep", help="evaluate every filter on a grid of values of any numbers of the file, or of "

@@ -20,6 +20,7 @@ Wilson score interval, which stays inside [0, 1] and is sound at 0 of n.
 from __future__ import annotations
 
 import functools
+import math
 from statistics import NormalDist
 
 import numpy as np
@@ -113,3 +114,29 @@ def paired_half_width(grad_f, grad_b, cov_ff, cov_bb, cov_fb, n, level: float = 
         return float("nan")
     var = _quad(grad_f, cov_ff, grad_f) + _quad(grad_b, cov_bb, grad_b) - 2.0 * _quad(grad_f, cov_fb, grad_b)
     return t_quantile(level, n - 1) * np.sqrt(max(var, 0.0) / n)
+
+
+def missing(v) -> bool:
+    """None or not finite: a statistic with no healthy run behind it."""
+    return v is None or (isinstance(v, (float, np.floating)) and not math.isfinite(v))
+
+
+def with_half_width(v, hw, spec="{:.2f}", sign=False) -> str:
+    """``34.45 ± 0.05``: the half-width to two significant digits, the value to the same decimal;
+    the column's own format when there is no half-width."""
+    if missing(v):
+        return "—"
+    if missing(hw):
+        s = spec.format(v)
+        return s.rstrip("%") if spec.endswith("%}") else s
+    if hw == 0:
+        return f"{v:{'+' if sign else ''}.{_decimals(spec)}f} ± 0"
+    d = max(0, 1 - math.floor(math.log10(abs(hw))))
+    return f"{v:{'+' if sign else ''}.{d}f} ± {hw:.{d}f}"
+
+
+def _decimals(spec) -> int:
+    try:
+        return int(spec.split(".")[1].split("f")[0]) if "f}" in spec else 2
+    except ValueError:
+        return 2

@@ -285,6 +285,9 @@ def with_intervals(result, filters, level=LEVEL, baseline=None):
             vb, gb = value_and_gradient(stats[key], pair.mean_g)
             h = paired_half_width(gf, gb, pair.cov_ff, pair.cov_gg, pair.cov_fg, pair.n, level)
             diff = float(vf - vb) if pair.n > 0 else float("nan")
+            rounding = 1e-9 * max(abs(float(vf)), abs(float(vb)))  # same numbers but for the last digits
+            if abs(diff) <= rounding and h <= rounding:
+                diff, h = 0.0, 0.0
             paired[key] = {"difference": diff, "half_width": h,
                            "significant": bool(np.isfinite(h) and abs(diff) > h) if li != base else False}
         f["paired"] = paired

@@ -1,4 +1,4 @@
-"""Results folders: stats.json, table.md, table.csv and figures.
+"""Results folders: stats.json, table.md, table.csv (and the figures of ``tracklab.figures``).
 
 They are written into a temporary folder that replaces the destination in one
 step when complete (``tracklab.output.atomic_folder``).
@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tracklab.intervals import missing, with_half_width
 from tracklab.metrics import AXES, PAIRED, REPORT_WINDOW, statistics
 
 # (summary key, title, format); {p}/{v} are the position/velocity units, {a} an axis name
@@ -52,35 +53,11 @@ def _fmt(v, spec):
     return s.rstrip("%") if spec.endswith("%}") else s
 
 
-def _missing(v) -> bool:
-    return v is None or (isinstance(v, (float, np.floating)) and not math.isfinite(v))
-
-
-def with_half_width(v, hw, spec="{:.2f}", sign=False) -> str:
-    """``34.45 ± 0.05``: the half-width to two significant digits, the value to the same decimal;
-    the column's own format when there is no half-width."""
-    if _missing(v):
-        return "—"
-    if _missing(hw):
-        return _fmt(v, spec)
-    if hw == 0:
-        return f"{v:{'+' if sign else ''}.{_decimals(spec)}f} ± 0"
-    d = max(0, 1 - math.floor(math.log10(abs(hw))))
-    return f"{v:{'+' if sign else ''}.{d}f} ± {hw:.{d}f}"
-
-
-def _decimals(spec) -> int:
-    try:
-        return int(spec.split(".")[1].split("f")[0]) if "f}" in spec else 2
-    except ValueError:
-        return 2
-
-
 def _diverged_cell(f) -> str:
     """``k (lo–hi %)``: the diverged runs and the Wilson interval of their fraction."""
     k = f["summary"].get("diverged")
     lo_hi = f.get("intervals", {}).get("diverged_fraction")
-    if k is None or not lo_hi or _missing(lo_hi[1]):
+    if k is None or not lo_hi or missing(lo_hi[1]):
         return _fmt(k, "{:d}")
     lo, hi = (100.0 * v for v in lo_hi)
     return f"{k} ({lo:.2g}–{hi:.2g} %)"
@@ -93,6 +70,8 @@ def _paired_cell(f, key=PAIRED_COLUMN) -> str:
         return "—"
     if pd.get("baseline") == f.get("label"):
         return "baseline"
+    if c["difference"] == 0 and c["half_width"] == 0:
+        return "0 (identical)"
     cell = with_half_width(c["difference"], c["half_width"], sign=True)
     return cell if c["significant"] or cell == "—" else cell + " (n.s.)"
 
@@ -303,6 +282,8 @@ def _example(exp, res):
     if not ex:
         return {}
     doc = {"truth": ex["truth"][1:], "estimates": ex["x"]}
+    if ex.get("var"):  # each filter's own standard deviations of its errors, for the ±3σ envelope
+        doc["sd"] = {k: np.sqrt(np.maximum(np.asarray(v, float), 0.0)) for k, v in ex["var"].items()}
     kinds = [s.kind for s in exp.sensor.sensors] if exp.sensor is not None else []
     if len(kinds) == 1 and kinds[0] in ("cartesian", "mount"):
         doc["measurements"] = ex["z"]
@@ -326,192 +307,12 @@ def write_tables(folder: Path, doc, table_md=None):
     (folder / "table.csv").write_text(csv_table(doc))
 
 
-def pyplot():
-    """matplotlib.pyplot on the file-only Agg backend."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def write_results(exp, res, folder: Path, figures=True):
     """Write the statistics document, tables and figures into ``folder``; return the document."""
     doc = stats_document(exp, res)
     write_tables(folder, doc)
     if figures:
+        from tracklab.figures import plot_figures
+
         plot_figures(doc, folder)
     return doc
-
-
-def plot_figures(doc, folder: Path):
-    plt = pyplot()
-
-    dt, stride = doc["dt"], doc.get("series_stride", 1)
-    t = dt * np.arange(stride, doc["steps"] + 1, stride)
-    filters = doc["filters"]
-    bounds = doc["bounds"]
-    axes_names = doc.get("axes", AXES)
-    pu, vu = doc.get("units", ("m", "m/s"))
-    dim = sum(1 for a in axes_names if f"rmse_{a}" in next(iter(filters.values()))["series"])
-    AX = axes_names
-    title = f"{doc['name']} — {doc['runs']} runs"
-
-    def arr(v):
-        return np.array([np.nan if x is None else x for x in v], float) if isinstance(v, list) else np.asarray(v, float)
-
-    # per-step RMSE per axis with the PCRLB (the paper's Fig. 2, panels A and C)
-    fig, axes = plt.subplots(dim, 1, figsize=(8, 2.8 * dim), sharex=True)
-    for a, ax in enumerate(np.atleast_1d(axes)):
-        for label, f in filters.items():
-            ax.plot(t, arr(f["series"][f"rmse_{AX[a]}"]), lw=1.2, label=label)
-        if f"pcrlb_{AX[a]}" in bounds:
-            ax.plot(t, arr(bounds[f"pcrlb_{AX[a]}"]), "k--", lw=1, label="PCRLB")
-        ax.set_yscale("log")
-        ax.set_ylabel(f"RMSE {AX[a]} ({pu})")
-        ax.grid(True, which="both", alpha=0.3)
-    np.atleast_1d(axes)[0].legend(fontsize=7, ncol=2)
-    np.atleast_1d(axes)[0].set_title(title)
-    np.atleast_1d(axes)[-1].set_xlabel("time (s)")
-    fig.tight_layout()
-    fig.savefig(folder / "rmse.png", dpi=110)
-    plt.close(fig)
-
-    # mean error (bias) per axis (panels B and D)
-    fig, axes = plt.subplots(dim, 1, figsize=(8, 2.8 * dim), sharex=True)
-    for a, ax in enumerate(np.atleast_1d(axes)):
-        for label, f in filters.items():
-            ax.plot(t, arr(f["series"][f"mean_err_{AX[a]}"]), lw=1.2, label=label)
-        ax.axhline(0, color="k", lw=0.6)
-        ax.set_yscale("symlog", linthresh=1.0 if pu == "m" else 1e-4)  # small biases stay visible beside large ones
-        ax.set_ylabel(f"mean error {AX[a]} ({pu})")
-        ax.grid(True, alpha=0.3)
-    np.atleast_1d(axes)[0].legend(fontsize=7, ncol=2)
-    np.atleast_1d(axes)[0].set_title(title)
-    np.atleast_1d(axes)[-1].set_xlabel("time (s)")
-    fig.tight_layout()
-    fig.savefig(folder / "mean_error.png", dpi=110)
-    plt.close(fig)
-
-    # one-step prediction error per axis (paper 004's Fig. 3), named windows shaded
-    fig, axes = plt.subplots(dim, 1, figsize=(8, 2.8 * dim), sharex=True)
-    for a, ax in enumerate(np.atleast_1d(axes)):
-        for label, f in filters.items():
-            ax.plot(t, arr(f["series"][f"pred_rmse_{AX[a]}"]), lw=1.2, label=label)
-        for w, (t0, t1) in _window_spans(doc).items():
-            ax.axvspan(t0, t1, color="0.9", zorder=0)
-            ax.text(0.5 * (t0 + t1), 1.0, w, transform=ax.get_xaxis_transform(), ha="center", va="bottom", fontsize=7)
-        ax.set_yscale("log")
-        ax.set_ylabel(f"one-step pred. RMS err {AX[a]} ({pu})")
-        ax.grid(True, which="both", alpha=0.3)
-    np.atleast_1d(axes)[0].legend(fontsize=7, ncol=2)
-    np.atleast_1d(axes)[-1].set_xlabel("time (s)")
-    fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(folder / "pred_error.png", dpi=110)
-    plt.close(fig)
-
-    example = doc.get("example_run") or {}
-    if example:
-        plot_example(doc, example, t, dim, folder)
-        if dim >= 2 and pu == "m":
-            plot_track(doc, example, folder)
-
-    # average NEES with its 95 % interval
-    fig, ax = plt.subplots(figsize=(8, 3.5))
-    for label, f in filters.items():
-        (line,) = ax.plot(t, arr(f["series"]["nees"]), lw=1.2, label=label)
-    f0 = next(iter(filters.values()))["series"]
-    ax.fill_between(t, arr(f0["nees_lo"]), arr(f0["nees_hi"]), color="0.8", label="95 % interval")
-    ax.axhline(2 * dim, color="k", lw=0.6)
-    ax.set_yscale("log")
-    ax.set_xlabel("time (s)")
-    ax.set_ylabel(f"average NEES (dof {2 * dim})")
-    ax.set_title(title)
-    ax.legend(fontsize=7, ncol=2)
-    ax.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(folder / "nees.png", dpi=110)
-    plt.close(fig)
-
-
-def plot_track(doc, example, folder: Path):
-    """The true path seen from above, coloured by each filter's per-step position RMSE (errors along the path)."""
-    import matplotlib.pyplot as plt
-    from matplotlib.collections import LineCollection
-
-    truth = np.asarray(example["truth"], float)
-    xy = truth[:, [0, 2]] / 1000.0
-    filters = doc["filters"]
-    vals = {label: np.array([np.nan if v is None else v for v in f["series"]["rmse_pos"]], float)
-            for label, f in filters.items()}
-    finite = np.concatenate([v[np.isfinite(v)] for v in vals.values()])
-    lo, hi = (np.percentile(finite, 2), np.percentile(finite, 98)) if finite.size else (1.0, 10.0)
-    norm = plt.Normalize(max(lo, 0.0), max(hi, lo + 1e-9))
-    k = len(filters)
-    cols = min(k, 3)
-    rows = -(-k // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.8 * rows), squeeze=False, constrained_layout=True)
-    seg = np.stack([xy[:-1], xy[1:]], axis=1)
-    for ax, (label, v) in zip(axes.flat, vals.items()):
-        lc = LineCollection(seg, cmap="viridis", norm=norm, linewidths=2.5)
-        lc.set_array(v[1:])
-        ax.add_collection(lc)
-        ax.plot([0], [0], "k^", ms=7)  # the sensor
-        ax.autoscale()
-        ax.set_aspect("equal", adjustable="datalim")
-        ax.set_title(f"{label}: RMSE {filters[label]['summary']['rmse_pos']:.1f} m", fontsize=8)
-        ax.set_xlabel("east (km)", fontsize=8)
-        ax.set_ylabel("north (km)", fontsize=8)
-        ax.tick_params(labelsize=7)
-        ax.grid(True, alpha=0.3)
-    for ax in list(axes.flat)[k:]:
-        ax.axis("off")
-    fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap="viridis"), ax=axes, shrink=0.8, label="position RMSE (m)")
-    fig.suptitle(f"{doc['name']} — {doc['runs']} runs: error along the path", fontsize=10)
-    fig.savefig(folder / "track.png", dpi=110)
-    plt.close(fig)
-
-
-def _window_spans(doc):
-    """Named windows given as [t0, t1] in the experiment file (not "rest")."""
-    table = doc.get("experiment", {}).get("report", {}).get("windows", {})
-    return {w: v for w, v in table.items() if isinstance(v, list) and w in doc.get("windows", [])}
-
-
-def plot_example(doc, example, t, dim, folder: Path):
-    """Run 0: true and estimated position and velocity, and their errors (paper 002 Figs. 4–7)."""
-    import matplotlib.pyplot as plt
-
-    truth = np.asarray(example["truth"], float)
-    est = {k: np.asarray(v, float) for k, v in example["estimates"].items()}
-    z = np.asarray(example["measurements"], float) if "measurements" in example else None
-    pu, vu = doc.get("units", ("m", "m/s"))
-    AX = doc.get("axes", AXES)
-    names = [("position", pu, 0), ("velocity", vu, 1)]
-    for kind in ("state", "error"):
-        fig, axes = plt.subplots(2, dim, figsize=(5 * dim, 6), sharex=True, squeeze=False)
-        for a in range(dim):
-            for row, (q, unit, j) in enumerate(names):
-                ax = axes[row, a]
-                col = 2 * a + j
-                if kind == "state":
-                    if z is not None and j == 0:
-                        ax.plot(t, z[:, a], ".", color="0.7", ms=2, label="measured")
-                    ax.plot(t, truth[:, col], "k-", lw=1.5, label="true")
-                    for label, x in est.items():
-                        ax.plot(t, x[:, col], lw=1, label=label)
-                else:
-                    for label, x in est.items():
-                        ax.plot(t, x[:, col] - truth[:, col], lw=1, label=label)
-                    ax.axhline(0, color="k", lw=0.6)
-                ax.set_ylabel(f"{q} {AX[a]} ({unit})" if kind == "state" else f"{q} error {AX[a]} ({unit})")
-                ax.grid(True, alpha=0.3)
-        axes[0, 0].legend(fontsize=7)
-        axes[0, 0].set_title(f"{doc['name']} — run 0")
-        for ax in axes[-1]:
-            ax.set_xlabel("time (s)")
-        fig.tight_layout()
-        fig.savefig(folder / ("run0.png" if kind == "state" else "run0_error.png"), dpi=110)
-        plt.close(fig)

@@ -86,27 +86,45 @@ def _cell(v, fmt):
     return fmt.format(v)
 
 
-def combined_rows(folders, metrics=DEFAULT_METRICS, docs=None):
+def combined_rows(folders, metrics=DEFAULT_METRICS, docs=None, half_widths=None):
+    """One row per filter of every folder: [folder, label, value per metric]; ``half_widths``, a
+    list, receives each row's half-widths per metric (None where the folder holds none)."""
     rows = []
     for folder, doc in zip(folders, docs or [read_stats(f) for f in folders]):
         for label, f in doc["filters"].items():
             values = dict(f["summary"], wall_s=doc.get("wall_s"), unit=doc.get("units", ["m"])[0])
             rows.append([Path(folder).name, label] + [values.get(m) for m in metrics])
+            if half_widths is not None:
+                hw = f.get("half_width") if isinstance(f.get("half_width"), dict) else {}
+                half_widths.append([hw.get(m) if _number(hw.get(m)) else None for m in metrics])
     return rows
 
 
 def combined_table(folders, fmt="md", metrics=DEFAULT_METRICS, docs=None) -> str:
-    rows = combined_rows(folders, metrics, docs)
+    """Every folder's filters in one table (md, csv or latex); a number with an interval is
+    ``value ± half-width`` (csv: a ``<metric>_hw`` column)."""
+    from tracklab.intervals import with_half_width
+
+    hws = []
+    rows = combined_rows(folders, metrics, docs, hws)
     titles = ["results", "filter"] + [METRICS[m][0] for m in metrics]
     if fmt == "csv":
+        shown = [j for j in range(len(metrics)) if any(h[j] is not None for h in hws)]
         buf = io.StringIO()
         w = csv.writer(buf)
-        w.writerow(["results", "filter", *metrics])
-        w.writerows([[v if v is None or not isinstance(v, float) or math.isfinite(v) else None for v in r] for r in rows])
+        w.writerow(["results", "filter", *metrics, *(f"{metrics[j]}_hw" for j in shown)])
+        finite = lambda v: v if v is None or not isinstance(v, float) or math.isfinite(v) else None
+        w.writerows([[finite(v) for v in r] + [finite(h[j]) for j in shown] for r, h in zip(rows, hws)])
         return buf.getvalue()
-    cells = [[r[0], r[1]] + [_cell(v, METRICS[m][1]) for v, m in zip(r[2:], metrics)] for r in rows]
+
+    def cell(v, hw, m):
+        if hw is None or METRICS[m][1] in ("{:d}", "{:.0%}", "{}"):
+            return _cell(v, METRICS[m][1])
+        return with_half_width(v, hw)
+
+    cells = [[r[0], r[1]] + [cell(v, hw, m) for v, hw, m in zip(r[2:], h, metrics)] for r, h in zip(rows, hws)]
     if fmt == "latex":
-        esc = lambda s: str(s).replace("%", r"\%").replace("_", r"\_").replace("&", r"\&")
+        esc = lambda s: str(s).replace("%", r"\%").replace("_", r"\_").replace("&", r"\&").replace("±", r"$\pm$")
         lines = [r"\begin{tabular}{ll" + "r" * len(metrics) + "}", r"\hline",
                  " & ".join(esc(t) for t in titles) + r" \\", r"\hline"]
         lines += [" & ".join(esc(c) for c in r) + r" \\" for r in cells]
@@ -150,7 +168,8 @@ def _check_outputs(exps, jobs, experiments_dir: Path, results_dir: Path, quick, 
                 raise ConfigError(exp.path, "[[study]]", study.kind, "studies need [[filter]] tables")
             if study.kind == "tune":
                 check_tune(exp, list(study.params), study.filters, base.with_name(base.name + "_tuned.toml"),
-                           min(study.runs_per_step, 4) if quick else study.runs_per_step, max_memory, "study.params")
+                           min(study.runs_per_step, 4) if quick else study.runs_per_step, max_memory, "study.params",
+                           base.with_name(base.name + "_tune"), "study.out")
                 check_results_folder(base.with_name(base.name + "_tuned"), exp.path, "study.out")
             else:
                 check_results_folder(base, exp.path, "study.out")

@@ -11,11 +11,13 @@ import numpy as np
 from tracklab.errors import ConfigError
 
 
-def check_tune(exp, names, labels, out_toml, runs_per_step=None, max_memory=None, field="--params"):
+def check_tune(exp, names, labels, out_toml, runs_per_step=None, max_memory=None, field="--params", folder=None,
+               folder_field="--results"):
     """Everything a tuning needs, checked before it compiles (ConfigError in one line): a selected
-    filter with the parameters, tuned values that can be written back, the output file, memory."""
+    filter with the parameters, tuned values that can be written back, the output file and
+    results folder, memory."""
     from tracklab.memory import check
-    from tracklab.output import check_tuned_file
+    from tracklab.output import check_results_folder, check_tuned_file
     from tracklab.tune import memory_bytes, selection, unwritable
 
     chosen = selection(exp, names, labels)
@@ -29,26 +31,34 @@ def check_tune(exp, names, labels, out_toml, runs_per_step=None, max_memory=None
     if why:
         raise ConfigError(exp.path, field, ",".join(names), why)
     check_tuned_file(out_toml, exp.path)
+    if folder is not None:
+        check_results_folder(folder, exp.path, folder_field)
     check(exp.path, memory_bytes(exp, runs_per_step or min(exp.runs, 256)), max_memory,
           "one tuning step (reverse mode keeps every run's filter states for every step)",
           "fewer --runs-per-step, or fewer experiment.steps")
 
 
-def run_tune(exp, names, *, steps, lr, loss, runs_per_step, labels, out_toml: Path, log=print, every=10,
+def run_tune(exp, names, *, steps, lr, loss, runs_per_step, labels, out_toml: Path, folder: Path, log=print, every=10,
              eval_runs=None):
-    """Tune, log progress lines, write the tuned experiment file atomically; return the TuneResult."""
+    """Tune, log progress lines, write the results folder (``tune_report``) and the tuned
+    experiment file, each atomically; return the TuneResult."""
     import sys
 
     from tracklab.config import load_experiment
     from tracklab.config.writing import dump_toml
-    from tracklab.output import TUNED_HEADER, check_tuned_file, write_text_atomically
+    from tracklab.output import TUNED_HEADER, atomic_folder, check_tuned_file, write_text_atomically
     from tracklab.tune import tune, tuned_document
 
     written_to = out_toml  # as given (the log names it so, not as this machine resolves it)
     out_toml = check_tuned_file(out_toml, exp.path)
+    lines = []
 
-    def progress(k, value, gnorm):
-        log(f"step {k:5d}  loss {value:.6g}  |grad| {gnorm:.3g}")
+    def say(line):
+        lines.append(line)
+        log(line)
+
+    def progress(k, per, gnorm):
+        say(f"step {k:5d}  " + "  ".join(f"{l}: {v:.6g}" for l, v in per.items()) + f"  |grad| {gnorm:.3g}")
 
     def number(v):
         return f"{v:.6g}" if math.isfinite(v) else "— (no finite value)"
@@ -61,10 +71,13 @@ def run_tune(exp, names, *, steps, lr, loss, runs_per_step, labels, out_toml: Pa
                progress=progress, eval_runs=eval_runs)
     if res.stopped:
         print(f"warning: {res.stopped}", file=sys.stderr)
-        log(res.stopped)
+        say(res.stopped)
     for label, p in res.params.items():
-        log(f"{label}: " + ", ".join(f"{k} {shown(res.initial[label][k])} -> {shown(v)}" for k, v in p.items()))
-    log(f"held-out {loss}: {number(res.eval_initial)} -> {number(res.eval_tuned)}")
+        say(f"{label}: " + ", ".join(f"{k} {shown(res.initial[label][k])} -> {shown(v)}" for k, v in p.items()))
+    for lane, before in res.eval_initial.items():  # a filter's (a closed loop's case's) own loss
+        say(f"{lane}: held-out {loss} ({res.eval_runs} runs) {number(before)} -> "
+            f"{number(res.eval_tuned.get(lane, math.nan))}")
+    say(f"tuned in {res.wall_s:.1f} s ({len(res.history)} steps of {res.runs_per_step} runs)")
     text = TUNED_HEADER + "\n" + dump_toml(tuned_document(exp, res, out_toml))
 
     def verify(tmp):  # the file must be one `tracklab run` accepts, before it replaces anything
@@ -74,8 +87,78 @@ def run_tune(exp, names, *, steps, lr, loss, runs_per_step, labels, out_toml: Pa
             raise ConfigError(exp.path, "--out", str(out_toml), f"not written: the tuned values are refused ({e.allowed})") from None
 
     write_text_atomically(out_toml, text, verify)
-    log(f"tuned experiment written to {written_to}")
+    say(f"tuned experiment written to {written_to}")
+    with atomic_folder(folder, exp.path, "--results") as tmp:
+        tune_report(exp, res, tmp, steps=steps, lr=lr, tuned_file=str(written_to), log_lines=lines)
+    log(f"tuning report written to {folder}/")
     return res
+
+
+def tune_report(exp, res, folder: Path, *, steps, lr, tuned_file, log_lines):
+    """A tuning's results folder: tune.json (settings, each filter's parameters and held-out loss
+    before and after, every step's loss per filter), table.md, loss.png (each filter's loss per
+    step in a panel of its own, the held-out values marked) and tune.log."""
+    from tracklab.figures import pyplot
+    from tracklab.report import md_cell, write_json
+
+    labels = list(res.params)
+    lanes = list(res.eval_initial)  # whose losses: the filters (a closed loop: its trackers' or cases')
+    doc = {
+        "name": exp.name, "loss": res.loss, "steps": steps, "lr": lr, "runs_per_step": res.runs_per_step,
+        "eval_runs": res.eval_runs, "wall_s": res.wall_s, "stopped": res.stopped or None, "tuned_file": tuned_file,
+        "filters": {l: {"initial": res.initial[l], "tuned": res.params[l]} for l in labels},
+        "heldout": {l: {"before": res.eval_initial.get(l), "after": res.eval_tuned.get(l)} for l in lanes},
+        "history": {"step": [k for k, _, _ in res.history], "grad_norm": [g for _, _, g in res.history],
+                    "loss": {l: [per.get(l) for _, per, _ in res.history] for l in lanes}},
+    }
+    write_json(folder / "tune.json", doc)
+
+    def number(v):
+        return f"{v:.6g}" if v is not None and math.isfinite(v) else "—"
+
+    def shown(v):
+        a = np.asarray(v, float)
+        return number(float(a)) if a.ndim == 0 else "[" + ", ".join(number(float(x)) for x in a.ravel()) + "]"
+
+    rows = ["| filter | parameter | start | tuned |", "|---|---|---|---|"]
+    for l in labels:
+        for n, v in res.params[l].items():
+            rows.append("| " + " | ".join([md_cell(l), n, shown(res.initial[l][n]), shown(v)]) + " |")
+    rows += ["", f"| loss of | held-out {res.loss} before | after | change |", "|---|---|---|---|"]
+    for l in lanes:
+        b, a = res.eval_initial.get(l, math.nan), res.eval_tuned.get(l, math.nan)
+        change = f"{100 * (a - b) / b:+.1f} %" if math.isfinite(a) and math.isfinite(b) and b else "—"
+        rows.append("| " + " | ".join([md_cell(l), number(b), number(a), change]) + " |")
+    caption = (f"\nLoss `{res.loss}` per filter (each filter tuned on its own loss), {len(res.history)} Adam steps of "
+               f"{res.runs_per_step} fresh runs, lr {lr:g}; held-out: {res.eval_runs} runs never used in the steps; "
+               f"{res.wall_s:.1f} s." + (f" {res.stopped}." if res.stopped else "") + "\n")
+    (folder / "table.md").write_text("\n".join(rows) + "\n" + caption)
+    (folder / "tune.log").write_text("\n".join(log_lines) + "\n")
+    if not res.history:
+        return
+    plt = pyplot()
+    fig, axs = plt.subplots(len(lanes), 1, figsize=(7.5, 2.4 * len(lanes) + 0.6), squeeze=False, sharex=True,
+                            layout="constrained")
+    steps_done = doc["history"]["step"]
+    for ax, l in zip(axs[:, 0], lanes):
+        v = np.array([np.nan if x is None else x for x in doc["history"]["loss"][l]], float)
+        if not np.isfinite(v).any():
+            continue
+        ax.plot(steps_done, v, lw=1.0, color="C0", label="each step's fresh runs")
+        for x, y, m, what in ((0, res.eval_initial.get(l), "o", "held-out, start"),
+                              (steps_done[-1], res.eval_tuned.get(l), "s", "held-out, tuned")):
+            if y is not None and math.isfinite(y):
+                ax.plot([x], [y], m, color="C3", ms=6, label=what)
+        if np.all(v[np.isfinite(v)] > 0) and np.nanmax(v) > 5 * np.nanmin(v):
+            ax.set_yscale("log")
+        ax.set_ylabel(f"{res.loss}", fontsize=8)
+        ax.set_title(l, fontsize=9)
+        ax.grid(True, which="both", alpha=0.3)
+    axs[0, 0].legend(fontsize=7, loc="upper right")
+    axs[-1, 0].set_xlabel("Adam step")
+    fig.suptitle(f"{exp.name}: tuning loss per filter", fontsize=10)
+    fig.savefig(folder / "loss.png", dpi=110)
+    plt.close(fig)
 
 
 def run_study(exp, study, results_dir, quick=False, log=print):
@@ -88,17 +171,11 @@ def run_study(exp, study, results_dir, quick=False, log=print):
     base = Path(results_dir) / study.out
     if study.kind == "tune":
         tuned = base.with_name(base.name + "_tuned.toml")
-        lines = []
-
-        def both(line):
-            lines.append(line)
-            log("        " + line)
-
         run_tune(exp, list(study.params), steps=2 if quick else study.steps, lr=study.lr, loss=study.loss,
                  runs_per_step=min(study.runs_per_step, 4) if quick else study.runs_per_step,
-                 labels=list(study.filters) if study.filters else None, out_toml=tuned, log=both,
+                 labels=list(study.filters) if study.filters else None, out_toml=tuned,
+                 folder=base.with_name(base.name + "_tune"), log=lambda line: log("        " + line),
                  eval_runs=8 if quick else None)
-        write_text_atomically(base.with_name(base.name + "_tune.log"), "\n".join(lines) + "\n")
         tuned_exp = load_experiment(tuned)
         tuned_exp.run(runs=min(tuned_exp.runs, 20) if quick else None, out=base.with_name(base.name + "_tuned"))
         return [tuned]

@@ -39,7 +39,8 @@ from tracklab.errors import ConfigError
 from tracklab.filters.registry import scales
 from tracklab.montecarlo import runner
 from tracklab.output import atomic_folder
-from tracklab.report import _fmt, md_cell, write_json
+from tracklab.intervals import with_half_width
+from tracklab.report import md_cell, write_json
 
 def resolve(exp, axes: list[Axis]):
     """Check every PATH axis against the file: it names a number (present, or one the file may
@@ -164,12 +165,12 @@ def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=
         tick = (lambda done, total, bi=bi: progress(bi * runs + done, n_blocks * runs)) if progress else None
         out = runner.run(world, stacked, runs, seed, precision=exp.precision, points=block, progress=tick)
         compile_s += out.compile_s
-        stats += [exp.summarise(structure, runner.pick(stacked, j), runner.pick(out.sums, j), out) for j in range(n)]
+        stats += [exp.summarise(structure, runner.pick(stacked, j), runner.pick(out.sums, j), out, j) for j in range(n)]
     wall = time.perf_counter() - t0
     doc_points = [{"values": dict(zip(names, map(float, v))), "stats": st} for v, st in zip(points, stats)]
     return {"axes": {a.name: a.values.tolist() for a in axes}, "titles": {a.name: a.title for a in axes},
             "log": {a.name: a.log for a in axes}, "points": doc_points, "wall_s": wall, "compile_s": compile_s,
-            "runs": runs, "units": list(exp.units),
+            "runs": runs, "units": list(exp.units), "nees_dof": getattr(exp, "nees_dof", None),
             "metrics": [[k, t.format(pos=exp.units[0])] for k, t in exp.sweep_metrics]}
 
 
@@ -198,26 +199,37 @@ def _write_sweep(exp, doc, tmp, figures):
     names = list(doc["axes"])
     labels = list(doc["points"][0]["stats"]["filters"])
     metrics = _metrics(doc["points"][0]["stats"]["filters"][labels[0]]["summary"])
-    rows = []
+    rows, hws = [], []
     for p in doc["points"]:
         for l in labels:
-            s = p["stats"]["filters"][l]["summary"]
+            f = p["stats"]["filters"][l]
+            s, hw = f["summary"], f.get("half_width", {})
             rows.append([*(p["values"][n] for n in names), l, *(s.get(m) for m in metrics), s.get("diverged", 0)])
+            hws.append([hw.get(m) for m in metrics])
+    with_hw = [m for j, m in enumerate(metrics) if any(h[j] is not None for h in hws)]
     heads = [n if "." in n else f"{n} x" for n in names]
     header = [*heads, "filter", *metrics, "diverged"]
     lines = ["| " + " | ".join(md_cell(h) for h in header) + " |", "|" + "|".join(["---"] * len(header)) + "|"]
-    for r in rows:
+    for r, h in zip(rows, hws):
         cells = ([f"{v:.4g}" for v in r[:len(names)]] + [md_cell(r[len(names)])]
-                 + [_fmt(v, "{:.4g}") for v in r[len(names) + 1:-1]] + [str(int(r[-1]))])
+                 + [with_half_width(v, hw, "{:.4g}") for v, hw in zip(r[len(names) + 1:-1], h)] + [str(int(r[-1]))])
         lines.append("| " + " | ".join(cells) + " |")
-    (tmp / "table.md").write_text("\n".join(lines) + "\n")
+    level = doc["points"][0]["stats"].get("level", 0.95)
+    caption = (f"\n± : half-width of the {level:.0%} confidence interval over the {doc['runs']} runs at each point "
+               "(every point on the same runs).\n") if with_hw else ""
+    (tmp / "table.md").write_text("\n".join(lines) + "\n" + caption)
     buf = io.StringIO()
-    csv.writer(buf).writerows([header, *([*r[:len(names) + 1], *map(_csv, r[len(names) + 1:-1]), r[-1]] for r in rows)])
+    header_csv = header[:-1] + [f"{m}_hw" for m in with_hw] + header[-1:]
+    csv.writer(buf).writerows([header_csv, *([*r[:len(names) + 1], *map(_csv, r[len(names) + 1:-1]),
+                                              *(_csv(h[metrics.index(m)]) for m in with_hw), r[-1]]
+                                             for r, h in zip(rows, hws))])
     (tmp / "table.csv").write_text(buf.getvalue())
     summary_only = {
         "name": exp.name, "runs": doc["runs"], "window": list(exp.window), "axes": doc["axes"],
         "titles": doc["titles"], "wall_s": doc["wall_s"], "compile_s": doc["compile_s"],
+        "level": doc["points"][0]["stats"].get("level"),
         "points": [{"values": p["values"], "filters": {l: {"kind": f["kind"], "summary": f["summary"]}
+                                                        | ({"half_width": f["half_width"]} if "half_width" in f else {})
                                                         for l, f in p["stats"]["filters"].items()}}
                    for p in doc["points"]],
         "experiment": exp.raw,
@@ -267,28 +279,42 @@ def _value_axis(ax, vals, positive):
 
 
 def _plot(doc, names, labels, folder):
-    from tracklab.report import pyplot
+    """Per metric one figure, a panel per filter laid out in a grid (at most three across): 1-D
+    sweeps as curves with each point's confidence interval, 2-D sweeps as heatmaps with each
+    cell centred on its grid values. The NEES's consistent value (its degrees of freedom) is a
+    line on the curves and a white contour on the heatmaps."""
+    from tracklab.figures import pyplot
 
     plt = pyplot()
 
     axes_vals = [np.asarray(doc["axes"][n]) for n in names]
     titles, log = doc["titles"], doc["log"]
+    dof = doc.get("nees_dof")
     for metric, title in doc["metrics"]:
         # None (no healthy run at a point) -> NaN -> masked: left blank
         values = {l: np.ma.masked_invalid(np.array([p["stats"]["filters"][l]["summary"].get(metric)
                                                     for p in doc["points"]], float)) for l in labels}
+        half = {l: np.array([p["stats"]["filters"][l].get("half_width", {}).get(metric, np.nan)
+                             for p in doc["points"]], float) for l in labels}
         if all(v.mask.all() for v in values.values()):
             continue  # nothing to draw (e.g. no NEES in this world)
         if any(np.ma.is_masked(v) for v in values.values()):
             title += " — blank: no run without divergence"
         positive = all(bool(np.all(v.compressed() > 0)) for v in values.values())
-        fig, axs = plt.subplots(1, len(labels), figsize=(4.2 * len(labels), 3.6), squeeze=False)
-        for ax, l in zip(axs[0], labels):
+        mark = dof if metric == "nees" and dof else None
+        cols = min(len(labels), 3)
+        rows = -(-len(labels) // cols)
+        fig, axs = plt.subplots(rows, cols, figsize=(4.6 * cols, 3.8 * rows), squeeze=False, layout="constrained")
+        for ax, l in zip(axs.flat, labels):
             vals = values[l]
             if len(names) == 1:
-                ax.plot(axes_vals[0], vals, "o-")
+                ax.errorbar(axes_vals[0], vals, yerr=np.where(np.isfinite(half[l]), half[l], 0.0), fmt="o-", ms=4,
+                            capsize=2)
                 ax.set_xscale("log" if log[names[0]] else "linear")
-                _value_axis(ax, vals.compressed(), positive)
+                _value_axis(ax, np.concatenate([vals.compressed()] + ([[mark]] if mark else [])), positive)
+                if mark:
+                    ax.axhline(mark, color="k", lw=0.8, ls="--", label=f"consistent ({mark})")
+                    ax.legend(fontsize=7, loc="best")
                 ax.set_xlabel(titles[names[0]])
                 ax.set_ylabel(title, fontsize=8)
                 ax.grid(True, which="both", alpha=0.3)
@@ -296,13 +322,25 @@ def _plot(doc, names, labels, folder):
                 grid = vals.reshape(len(axes_vals[0]), len(axes_vals[1]))
                 shown = np.ma.log10(grid) if positive else grid
                 im = ax.pcolormesh(_edges(axes_vals[1], log[names[1]]), _edges(axes_vals[0], log[names[0]]), shown)
+                if mark and len(axes_vals[0]) > 1 and len(axes_vals[1]) > 1:
+                    level = np.log10(mark) if positive else mark
+                    if np.nanmin(shown) < level < np.nanmax(shown):
+                        ax.contour(axes_vals[1], axes_vals[0], shown, levels=[level], colors="w", linewidths=1.5)
                 ax.set_xscale("log" if log[names[1]] else "linear")
                 ax.set_yscale("log" if log[names[0]] else "linear")
-                ax.set_xlabel(titles[names[1]])
-                ax.set_ylabel(titles[names[0]])
-                fig.colorbar(im, ax=ax, label=f"log10 {metric}" if positive else metric)
+                ax.set_xticks(axes_vals[1], [f"{v:g}" for v in axes_vals[1]], fontsize=7)
+                ax.set_yticks(axes_vals[0], [f"{v:g}" for v in axes_vals[0]], fontsize=7)
+                ax.minorticks_off()
+                ax.set_xlabel(titles[names[1]], fontsize=8)
+                ax.set_ylabel(titles[names[0]], fontsize=8)
+                cb = fig.colorbar(im, ax=ax, label=f"log10 {metric}" if positive else metric)
+                if mark:
+                    cb.ax.axhline(np.log10(mark) if positive else mark, color="w", lw=1.5)
             ax.set_title(l, fontsize=9)
-        fig.suptitle(title)
-        fig.tight_layout()
+        for ax in list(axs.flat)[len(labels):]:
+            ax.axis("off")
+        if mark and len(names) == 2:
+            title += f" — white line: consistent NEES = {mark}"
+        fig.suptitle(title, fontsize=10)
         fig.savefig(folder / f"sweep_{metric}.png", dpi=110)
         plt.close(fig)

@@ -18,7 +18,10 @@ gives (``tracklab.filters.kind``: each parameter's constraint):
 Which parameters may be tuned (``TUNABLE``) and how a tuned value is written back
 into the experiment file are declared there too.
 
-Losses (time-averaged over the report window, summed over the tuned filters):
+Losses (time-averaged over the report window). Each tuned filter has its own: the
+optimiser follows the gradient of their sum, in which a filter's parameters reach only
+its own term, so no filter's tuning is steered by another's error, and each filter's
+loss is recorded and evaluated on its own:
 
 * ``mse_pos`` — position mean-square error;
 * ``pred_mse`` — one-step prediction mean-square error of the position;
@@ -209,9 +212,10 @@ def _named_selection(exp, names: dict) -> dict:
 
 @dataclass
 class Objective:
-    """loss(theta, key, idx, live) for the selected parameters of an experiment (any world)."""
+    """losses(theta, key, idx, live) -> {label: loss} for the selected parameters of an experiment
+    (any world): each tuned filter's (tracker's, case's) own loss."""
 
-    loss: Callable
+    losses: Callable
     theta0: dict  # label -> unconstrained coordinates of its tuned parameters
     values: Callable  # theta -> {label: {name: value}}, the tuned parameters' constrained values
     chosen: dict  # label -> names
@@ -261,10 +265,10 @@ def objective(exp, names, loss="mse_pos", labels=None) -> Objective:
     def filters(theta):
         return [decode_one(l, theta[l], f) if l in theta else f for l, f in zip(labels_all, base)]
 
-    def total(theta, key, idx, live):
+    def per_filter(theta, key, idx, live):
         p = params._replace(filters=filters(theta))
         sums = tracking.unpack(fn(p, key, idx, live, jnp.zeros((len(labels_all), idx.shape[0]), bool)), exp.dim)
-        return sum(loss_fn(sums[l], window) for l in chosen)
+        return {l: loss_fn(sums[l], window) for l in chosen}
 
     def values(theta):
         f = filters(theta)
@@ -280,7 +284,7 @@ def objective(exp, names, loss="mse_pos", labels=None) -> Objective:
                 return why
         return None
 
-    return Objective(total, theta0, values, {l: tuple(ns) for l, ns in chosen.items()}, why_not)
+    return Objective(per_filter, theta0, values, {l: tuple(ns) for l, ns in chosen.items()}, why_not)
 
 
 def _closed_loop_objective(exp, chosen, loss) -> Objective:
@@ -295,26 +299,30 @@ def _closed_loop_objective(exp, chosen, loss) -> Objective:
     def values(theta):
         return {l: positive.decode(t) for l, t in theta.items()}
 
-    def total(theta, key, idx, live):
+    def per_lane(theta, key, idx, live):
         p = exp.with_tuned(params, values(theta))
         sums = fn(p, key, idx, live, jnp.zeros((len(structure.labels), idx.shape[0]), bool))
-        return sum(loss_fn(sums[l]) for l in lanes)
+        return {l: loss_fn(sums[l]) for l in lanes}
 
     def why_not(vals):
         return next((f"{l}: {n} leaves {positive.bounds}" for l, v in vals.items() for n, x in v.items()
                      if not positive.contains({n: x})), None)
 
-    return Objective(total, theta0, values, chosen, why_not)
+    return Objective(per_lane, theta0, values, chosen, why_not)
 
 
 @dataclass
 class TuneResult:
     params: dict  # label -> tuned parameters (floats / lists)
     initial: dict  # label -> starting parameters
-    history: list = field(default_factory=list)  # (step, loss, gradient norm)
-    eval_initial: float = math.nan
-    eval_tuned: float = math.nan
+    history: list = field(default_factory=list)  # (step, {label: its loss on that step's runs}, gradient norm)
+    eval_initial: dict = field(default_factory=dict)  # label -> its loss on the held-out runs, before
+    eval_tuned: dict = field(default_factory=dict)  # label -> … after
     stopped: str = ""
+    loss: str = ""  # which loss
+    runs_per_step: int = 0
+    eval_runs: int = 0
+    wall_s: float = 0.0  # the whole tuning, compiling and the held-out evaluations included
 
 
 def _floats(values: dict) -> dict:
@@ -333,6 +341,9 @@ def tune(exp, names, *, steps=200, lr=0.05, loss="mse_pos", runs_per_step=None, 
 
 
 def _tune(exp, names, *, steps, lr, loss, runs_per_step, eval_runs, seed, labels, every, progress) -> TuneResult:
+    import time
+
+    t0 = time.perf_counter()
     obj = objective(exp, names, loss, labels)
     B = int(runs_per_step or min(exp.runs, 256))
     n_eval = int(eval_runs or min(exp.runs, 2000))
@@ -340,21 +351,27 @@ def _tune(exp, names, *, steps, lr, loss, runs_per_step, eval_runs, seed, labels
     train_key, eval_key = jax.random.fold_in(key, 1), jax.random.fold_in(key, 2)  # held-out runs
     idx = jnp.arange(B, dtype=jnp.uint32)
     live = jnp.ones((B,), bool)
-    value_and_grad = jax.jit(jax.value_and_grad(obj.loss))
+
+    def total(theta, key, idx, live):  # a filter's parameters reach only its own term
+        losses = obj.losses(theta, key, idx, live)
+        return sum(losses.values()), losses
+
+    value_and_grad = jax.jit(jax.value_and_grad(total, has_aux=True))
+    held_out = jax.jit(obj.losses)
     opt = optax.adam(lr)
     theta = obj.theta0
     state = opt.init(theta)
-    result = TuneResult(params={}, initial=_floats(obj.initial))
+    result = TuneResult(params={}, initial=_floats(obj.initial), loss=loss, runs_per_step=B, eval_runs=n_eval)
 
     def evaluate(th):
         e_idx = jnp.arange(n_eval, dtype=jnp.uint32)
-        return float(jax.jit(obj.loss)(th, eval_key, e_idx, jnp.ones((n_eval,), bool)))
+        return {l: float(v) for l, v in held_out(th, eval_key, e_idx, jnp.ones((n_eval,), bool)).items()}
 
     result.eval_initial = evaluate(theta)
     last_finite = theta  # the last parameters whose loss was finite (the start until one is seen)
     for k in range(steps):  # optimisation steps; each one is a whole batched simulation
-        val, g = value_and_grad(theta, jax.random.fold_in(train_key, k), idx, live)
-        val = float(val)
+        (val, per), g = value_and_grad(theta, jax.random.fold_in(train_key, k), idx, live)
+        val, per = float(val), {l: float(v) for l, v in per.items()}
         if k == 0:
             dead = [f"{l}: {n}" for l, gl in g.items() for n, gn in gl.items() if not np.any(np.asarray(gn))]
             if dead:
@@ -363,16 +380,17 @@ def _tune(exp, names, *, steps, lr, loss, runs_per_step, eval_runs, seed, labels
         gnorm = float(jnp.sqrt(sum(jnp.vdot(x, x) for x in jax.tree_util.tree_leaves(g))))
         if not math.isfinite(val):
             theta = last_finite
-            result.stopped = (f"stopped at step {k}: non-finite loss; kept the parameters of step "
+            bad = ", ".join(l for l, v in per.items() if not math.isfinite(v))
+            result.stopped = (f"stopped at step {k}: non-finite loss ({bad}); kept the parameters of step "
                               f"{k - 1 if k else 0} (the last with a finite loss)")
             break
         last_finite = theta
         if not math.isfinite(gnorm):
             result.stopped = f"stopped at step {k}: non-finite gradient; kept the parameters of step {k}"
             break
-        result.history.append((k, val, gnorm))
+        result.history.append((k, per, gnorm))
         if progress and (k % every == 0 or k == steps - 1):
-            progress(k, val, gnorm)
+            progress(k, per, gnorm)
         updates, new_state = opt.update(g, state, theta)
         new_theta = optax.apply_updates(theta, updates)
         why = obj.why_not(obj.values(new_theta))
@@ -382,6 +400,7 @@ def _tune(exp, names, *, steps, lr, loss, runs_per_step, eval_runs, seed, labels
         theta, state = new_theta, new_state
     result.params = _floats(obj.values(theta))
     result.eval_tuned = evaluate(theta)
+    result.wall_s = time.perf_counter() - t0
     return result
 
 

@@ -174,7 +174,7 @@ class AirborneExperiment:
 
         return params._replace(trackers=[scale(p) for p in params.trackers])
 
-    def summarise(self, structure, params, sums, out) -> dict:
+    def summarise(self, structure, params, sums, out, point=None) -> dict:
         return self.document(sums, out.runs, out.wall_s, out.compile_s, self.precision)
 
     # tuning (tracklab.tune): the [[tracker]] fields q_scale, r_scale and lam of the filtering trackers
@@ -352,7 +352,8 @@ def airborne_tables(doc) -> str:
 
 def write_airborne_results(doc, folder: Path, figures=True):
     """The tables and (``figures``) the figures of an airborne statistics document; returns it."""
-    from tracklab.report import pyplot, write_tables
+    from tracklab.figures import pyplot
+    from tracklab.report import write_tables
 
     write_tables(folder, doc, airborne_tables(doc))
     if not figures:

@@ -219,7 +219,7 @@ class ServoExperiment:
 
         return params._replace(estimators=[scale(p) for p in params.estimators])
 
-    def summarise(self, structure, params, sums, out) -> dict:
+    def summarise(self, structure, params, sums, out, point=None) -> dict:
         cases = {}
         for case in structure.cases:
             s = {k: v for k, v in sums[case.label].items() if not k.startswith("example")}
@@ -335,7 +335,8 @@ def case_summary(sums: dict, runs: int, estimated: bool) -> dict:
 
 def write_servo_results(doc, folder: Path, figures=True):
     """The tables and (``figures``) the figures of a servo statistics document; returns it."""
-    from tracklab.report import pyplot, write_tables
+    from tracklab.figures import pyplot
+    from tracklab.report import write_tables
 
     write_tables(folder, doc)
     if not figures:

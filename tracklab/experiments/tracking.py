@@ -117,6 +117,11 @@ class Experiment:
             specs.append(FilterSpec(f.label, r.filter, f.kind, f.sensors, r.model, r.view, r.prior_extra_var))
         return specs
 
+    @property
+    def nees_dof(self) -> int:
+        """The NEES's degrees of freedom (position and velocity): its consistent value."""
+        return 2 * self.dim
+
     # what a sweep plots: (summary key, title)
     sweep_metrics = (("rmse_pos", "time-averaged position RMSE ({pos})"), ("nees", "average NEES"),
                      ("pred_err_rms", "RMS one-step prediction error ({pos})"))
@@ -132,12 +137,13 @@ class Experiment:
                                          for k, v in p.items()} if isinstance(fc, FilterConfig) else p
                                         for fc, p in zip(self.filters, params.filters)])
 
-    def summarise(self, structure, params, sums, out) -> dict:
-        """The statistics document of one parameter set's sums (the runner's ``out``)."""
+    def summarise(self, structure, params, sums, out, point=None) -> dict:
+        """The statistics document of one parameter set's sums (the runner's ``out``; ``point``:
+        which of its grid points)."""
         from tracklab.metrics import statistics
         from tracklab.worlds import tracking
 
-        return statistics(tracking.result(structure, params, sums, out), self.window, self.pred_windows, self.level,
+        return statistics(tracking.result(structure, params, sums, out, point), self.window, self.pred_windows, self.level,
                           self.baseline)
 
     @property

@@ -1,0 +1,514 @@
+"""The figures of a tracking results folder, drawn from its statistics document (stats.json).
+
+* ``rmse.png``: per-step position and velocity RMSE with their confidence bands and the PCRLB;
+  ``rmse_axes.png`` the same per axis (the papers' per-axis panels).
+* ``mean_error.png``: per-step mean error (bias) per axis with its band.
+* ``nees.png``, ``nis.png``: average NEES and NIS with their χ² acceptance bands.
+* ``pred_error.png``: one-step prediction RMS error per axis, named windows shaded.
+* ``error_cdf.png``: the distribution of the runs' RMS position errors (P(error ≤ x)).
+* ``run0.png``, ``run0_error.png``: run 0's estimates and errors, with each filter's ±3σ.
+* ``track.png``: the path seen from above, coloured by each filter's per-step RMSE.
+
+Curves that coincide stay distinguishable: each filter has its own colour, line style and
+markers (staggered along the curve), the legend sits outside the axes with each filter's
+time-averaged value ± its half-width, and a note names the filters whose curves coincide.
+A filter far from the others (its time-averaged value more than ``OUTLIER`` times theirs,
+or its NEES/NIS far outside consistency) is drawn in a panel of its own, so it never sets
+the scale of the rest.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from tracklab.intervals import with_half_width
+from tracklab.metrics import AXES
+
+OUTLIER = 3.0  # a filter this many times off the others' median (or off consistency) gets its own panel
+LINESTYLES = ["-", "--", "-.", ":", (0, (5, 1, 1, 1)), (0, (1, 1)), (0, (8, 2)), (0, (3, 1, 1, 1, 1, 1))]
+MARKERS = ["o", "s", "^", "v", "D", "x", "P", "*", "<", ">"]
+COINCIDE = 0.01  # curves within 1 % of each other over the report window are noted as coinciding
+
+
+def pyplot():
+    """matplotlib.pyplot on the file-only Agg backend."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def arr(v):
+    """A stats.json series (None for missing) as a float array (NaN for missing)."""
+    return np.array([np.nan if x is None else x for x in v], float) if isinstance(v, list) else np.asarray(v, float)
+
+
+def styles(labels, points):
+    """Per filter: colour, line style and markers staggered along ``points`` samples."""
+    import matplotlib.pyplot as plt
+
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    k = max(len(labels), 1)
+    every = max(points // 8, 1)
+    return {label: dict(color=colours[i % len(colours)], ls=LINESTYLES[i % len(LINESTYLES)],
+                        marker=MARKERS[i % len(MARKERS)], markevery=(int(i * every / k) % every, every), ms=4,
+                        lw=1.3, mfc="none")
+            for i, label in enumerate(labels)}
+
+
+def _summary_value(f, key, unit=""):
+    s, hw = f["summary"].get(key), f.get("half_width", {}).get(key)
+    if s is None:
+        return ""
+    if hw is None or not np.isfinite(hw):
+        return f" ({s:.4g}{unit})"
+    return f" ({with_half_width(s, hw)}{unit})"
+
+
+def _label(label, f, keys):
+    """``label (v1 ± h1 u1, v2 ± h2 u2)`` of the filter's time-averaged values."""
+    parts = [_summary_value(f, k, f" {u}").strip()[1:-1] for k, u in keys]
+    parts = [p for p in parts if p]
+    return label + (f" ({', '.join(parts)})" if parts else "")
+
+
+def split_outliers(values: dict, centre=None, factor=OUTLIER):
+    """(main, outliers) labels: an outlier's value is more than ``factor`` times from ``centre``
+    (default the median of all) on a log scale; missing values stay in the main group. When
+    every filter would be an outlier, none is."""
+    finite = {k: v for k, v in values.items() if v is not None and np.isfinite(v) and v > 0}
+    if len(finite) < 2 and centre is None:
+        return list(values), []
+    c = centre if centre is not None else float(np.median(list(finite.values())))
+    out = [k for k, v in finite.items() if abs(np.log(v / c)) > np.log(factor)]
+    main = [k for k in values if k not in out]
+    return (main, out) if main else (list(values), [])
+
+
+def coinciding(curves: dict, window) -> list[list[str]]:
+    """Groups of labels whose curves stay within ``COINCIDE`` (relative) of each other over ``window``."""
+    groups, seen = [], set()
+    labels = list(curves)
+    for i, a in enumerate(labels):
+        if a in seen:
+            continue
+        group = [a]
+        for b in labels[i + 1:]:
+            if b in seen:
+                continue
+            x, y = curves[a][window], curves[b][window]
+            ok = np.isfinite(x) & np.isfinite(y)
+            if ok.any() and np.all(np.abs(x[ok] - y[ok]) <= COINCIDE * np.maximum(np.abs(x[ok]), np.abs(y[ok]))):
+                group.append(b)
+        if len(group) > 1:
+            seen.update(group)
+            groups.append(group)
+    return groups
+
+
+def coincide_note(groups) -> str:
+    return "; ".join(f"{', '.join(g)} coincide (within {COINCIDE:.0%})" for g in groups)
+
+
+def _legend(fig, handles_from, note=""):
+    """The legend outside the axes, on the right, with the coinciding-curves note beneath it."""
+    handles, labels = [], []
+    for ax in np.asarray(handles_from).ravel():
+        h, l = ax.get_legend_handles_labels()
+        for hh, ll in zip(h, l):
+            if ll not in labels:
+                handles.append(hh)
+                labels.append(ll)
+    if note:  # beneath the entries, in the legend's column
+        import textwrap
+
+        from matplotlib.lines import Line2D
+
+        handles.append(Line2D([], [], color="none"))
+        labels.append("\n".join(textwrap.wrap(note, 38)))
+    return fig.legend(handles, labels, loc="outside right upper", fontsize=7, frameon=False)
+
+
+def plain_log(ax, axis="y"):
+    """A log axis labelled in plain numbers at 1, 2, 3, 5 × 10ⁿ (no overlapping minor labels)."""
+    from matplotlib.ticker import LogLocator, NullFormatter, ScalarFormatter
+
+    a = ax.yaxis if axis == "y" else ax.xaxis
+    (ax.set_yscale if axis == "y" else ax.set_xscale)("log")
+    a.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 3.0, 5.0)))
+    fmt = ScalarFormatter()
+    fmt.set_scientific(False)
+    a.set_major_formatter(fmt)
+    a.set_minor_formatter(NullFormatter())
+
+
+def _band(ax, t, v, hw, st, label):
+    ax.plot(t, v, label=label if label is not None else "_nolegend_", **st)
+    if hw is not None:
+        ok = np.isfinite(v) & np.isfinite(hw)
+        if ok.any():
+            ax.fill_between(t, np.where(ok, v - hw, np.nan), np.where(ok, v + hw, np.nan), color=st["color"],
+                            alpha=0.18, lw=0)
+
+
+def _window_slice(doc, t):
+    a, b = doc.get("window", [1, len(t)])
+    stride = doc.get("series_stride", 1)
+    return slice((a - 1) // stride, b // stride)
+
+
+def plot_figures(doc, folder: Path):
+    """Every figure of a tracking results folder (see the module's doc)."""
+    plt = pyplot()
+    dt, stride = doc["dt"], doc.get("series_stride", 1)
+    t = dt * np.arange(stride, doc["steps"] + 1, stride)
+    filters = doc["filters"]
+    labels = list(filters)
+    axes_names = doc.get("axes", AXES)
+    dim = sum(1 for a in axes_names if f"rmse_{a}" in next(iter(filters.values()))["series"])
+    st = styles(labels, len(t))
+    ctx = dict(doc=doc, t=t, filters=filters, st=st, dim=dim, folder=folder, plt=plt,
+               title=f"{doc['name']} — {doc['runs']} runs", w=_window_slice(doc, t))
+    _rmse(ctx)
+    _rmse_axes(ctx)
+    _mean_error(ctx)
+    _pred_error(ctx)
+    _consistency(ctx, "nees", f"average NEES (dof {2 * dim})", 2.0 * dim)
+    _consistency(ctx, "nis", "average NIS", None)
+    _error_cdf(ctx)
+    example = doc.get("example_run") or {}
+    if example:
+        plot_example(doc, example, t, dim, folder, st)
+        if dim >= 2 and doc.get("units", ("m",))[0] == "m":
+            plot_track(doc, example, folder)
+
+
+def _grid(plt, rows, cols, width=7.0, height=2.6):
+    return plt.subplots(rows, cols, figsize=(width * cols + 2.2, height * rows + 0.6), squeeze=False,
+                        sharex=True, layout="constrained")
+
+
+def _two_groups(ctx, key):
+    """(main, outliers) by the filters' time-averaged ``key``."""
+    return split_outliers({l: f["summary"].get(key) for l, f in ctx["filters"].items()})
+
+
+def _rmse(ctx):
+    """Position and velocity RMSE with bands and the PCRLB; outliers in a column of their own."""
+    doc, t, filters, st = ctx["doc"], ctx["t"], ctx["filters"], ctx["st"]
+    pu, vu = doc.get("units", ("m", "m/s"))
+    bounds = doc["bounds"]
+    main, out = _two_groups(ctx, "rmse_pos")
+    cols = [main] + ([out] if out else [])
+    fig, axs = _grid(ctx["plt"], 2, len(cols))
+    notes = []
+    for c, group in enumerate(cols):
+        for r, (q, unit, bound) in enumerate((("pos", pu, "pcrlb_pos"), ("vel", vu, "pcrlb_vel"))):
+            ax = axs[r, c]
+            curves = {}
+            for l in group:
+                s = filters[l]["series"]
+                v = arr(s[f"rmse_{q}"])
+                curves[l] = v
+                _band(ax, t, v, arr(s[f"rmse_{q}_hw"]) if f"rmse_{q}_hw" in s else None, st[l],
+                      _label(l, filters[l], (("rmse_pos", pu), ("rmse_vel", vu))) if r == 0 else None)
+            if bound in bounds:
+                ax.plot(t, arr(bounds[bound]), "k--", lw=0.9, label="PCRLB" if r == 0 else None)
+            plain_log(ax)
+            ax.set_ylabel(f"RMSE {'position' if q == 'pos' else 'velocity'} ({unit})")
+            ax.grid(True, which="both", alpha=0.3)
+            if r == 0:
+                notes += coinciding(curves, ctx["w"])
+                ax.set_title("filters far from the others (own scale)" if c == 1 else ctx["title"], fontsize=9)
+        axs[-1, c].set_xlabel("time (s)")
+    _legend(fig, axs, "; ".join(filter(None, [coincide_note(notes), f"bands: {doc.get('level', 0.95):.0%} "
+                                              "confidence of each per-step RMSE; in brackets the time-averaged "
+                                              "position and velocity RMSE"])))
+    fig.savefig(ctx["folder"] / "rmse.png", dpi=110)
+    ctx["plt"].close(fig)
+
+
+def _rmse_axes(ctx):
+    """Per-axis position RMSE with bands and the per-axis PCRLB (the papers' panels)."""
+    doc, t, filters, st, dim = ctx["doc"], ctx["t"], ctx["filters"], ctx["st"], ctx["dim"]
+    AX = doc.get("axes", AXES)
+    pu = doc.get("units", ("m", "m/s"))[0]
+    fig, axs = _grid(ctx["plt"], dim, 1)
+    for a in range(dim):
+        ax = axs[a, 0]
+        for l, f in filters.items():
+            s = f["series"]
+            _band(ax, t, arr(s[f"rmse_{AX[a]}"]), arr(s[f"rmse_{AX[a]}_hw"]) if f"rmse_{AX[a]}_hw" in s else None,
+                  st[l], l + _summary_value(f, f"rmse_{AX[a]}"))
+        if f"pcrlb_{AX[a]}" in doc["bounds"]:
+            ax.plot(t, arr(doc["bounds"][f"pcrlb_{AX[a]}"]), "k--", lw=0.9, label="PCRLB")
+        plain_log(ax)
+        ax.set_ylabel(f"RMSE {AX[a]} ({pu})")
+        ax.grid(True, which="both", alpha=0.3)
+    axs[0, 0].set_title(ctx["title"], fontsize=9)
+    axs[-1, 0].set_xlabel("time (s)")
+    _legend(fig, axs)
+    fig.savefig(ctx["folder"] / "rmse_axes.png", dpi=110)
+    ctx["plt"].close(fig)
+
+
+def _mean_error(ctx):
+    """Mean error per axis with its band: a bias is real where the band leaves zero."""
+    doc, t, filters, st, dim = ctx["doc"], ctx["t"], ctx["filters"], ctx["st"], ctx["dim"]
+    AX = doc.get("axes", AXES)
+    pu = doc.get("units", ("m", "m/s"))[0]
+    main, out = split_outliers({l: float(np.nanmax(np.abs(np.concatenate(
+        [arr(f["series"][f"mean_err_{AX[a]}"])[ctx["w"]] for a in range(dim)]))) or np.nan) for l, f in filters.items()})
+    cols = [main] + ([out] if out else [])
+    fig, axs = _grid(ctx["plt"], dim, len(cols))
+    for c, group in enumerate(cols):
+        for a in range(dim):
+            ax = axs[a, c]
+            for l in group:
+                s = filters[l]["series"]
+                _band(ax, t, arr(s[f"mean_err_{AX[a]}"]),
+                      arr(s[f"mean_err_{AX[a]}_hw"]) if f"mean_err_{AX[a]}_hw" in s else None, st[l],
+                      l if a == 0 else None)
+            ax.axhline(0, color="k", lw=0.6)
+            ax.set_ylabel(f"mean error {AX[a]} ({pu})")
+            ax.grid(True, alpha=0.3)
+        axs[0, c].set_title("filters far from the others (own scale)" if c == 1 else ctx["title"], fontsize=9)
+        axs[-1, c].set_xlabel("time (s)")
+    _legend(fig, axs, f"bands: {doc.get('level', 0.95):.0%} confidence of the mean error over the runs")
+    fig.savefig(ctx["folder"] / "mean_error.png", dpi=110)
+    ctx["plt"].close(fig)
+
+
+def _pred_error(ctx):
+    """One-step prediction RMS error per axis (paper 004's Fig. 3), named windows shaded."""
+    doc, t, filters, st, dim = ctx["doc"], ctx["t"], ctx["filters"], ctx["st"], ctx["dim"]
+    AX = doc.get("axes", AXES)
+    pu = doc.get("units", ("m", "m/s"))[0]
+    shown = {l: f for l, f in filters.items() if np.isfinite(arr(f["series"]["pred_rmse_" + AX[0]])).any()}
+    if not shown:
+        return
+    fig, axs = _grid(ctx["plt"], dim, 1)
+    for a in range(dim):
+        ax = axs[a, 0]
+        for l, f in shown.items():
+            ax.plot(t, arr(f["series"][f"pred_rmse_{AX[a]}"]), label=l + _summary_value(f, f"pred_err_rms_{AX[a]}"),
+                    **st[l])
+        for w, (t0, t1) in _window_spans(doc).items():
+            ax.axvspan(t0, t1, color="0.9", zorder=0)
+            ax.text(0.5 * (t0 + t1), 1.0, w, transform=ax.get_xaxis_transform(), ha="center", va="bottom", fontsize=7)
+        plain_log(ax)
+        ax.set_ylabel(f"one-step pred. RMS err {AX[a]} ({pu})")
+        ax.grid(True, which="both", alpha=0.3)
+    axs[0, 0].set_title(ctx["title"], fontsize=9)
+    axs[-1, 0].set_xlabel("time (s)")
+    _legend(fig, axs)
+    fig.savefig(ctx["folder"] / "pred_error.png", dpi=110)
+    ctx["plt"].close(fig)
+
+
+def _consistency(ctx, key, ylabel, dof):
+    """Average NEES or NIS with each filter's χ² band; the consistent filters set the scale of the
+    first panel, a filter far from consistency (its average more than ``OUTLIER`` times its
+    band's centre away) is drawn in a second panel on its own log scale."""
+    doc, t, filters, st = ctx["doc"], ctx["t"], ctx["filters"], ctx["st"]
+    w = ctx["w"]
+    shown = {l: f for l, f in filters.items() if np.isfinite(arr(f["series"][key])).any()}
+    if not shown:
+        return
+    centres = {}
+    for l, f in shown.items():
+        lo, hi = arr(f["series"][f"{key}_lo"])[w], arr(f["series"][f"{key}_hi"])[w]
+        centres[l] = float(np.nanmean(0.5 * (lo + hi))) if dof is None else dof
+    ratio = {l: (f["summary"].get(key) or np.nan) / centres[l] for l, f in shown.items()}
+    main, out = split_outliers(ratio, centre=1.0)
+    groups = [main] + ([out] if out else [])
+    fig, axs = _grid(ctx["plt"], len(groups), 1, height=3.0)
+    notes = []
+    for g, group in enumerate(groups):
+        ax = axs[g, 0]
+        bands = {}
+        curves = {}
+        for l in group:
+            s = shown[l]["series"]
+            bands.setdefault((tuple(np.round(arr(s[f"{key}_lo"]), 6)), tuple(np.round(arr(s[f"{key}_hi"]), 6))), l)
+            curves[l] = arr(s[key])
+            ax.plot(t, curves[l], label=l + _summary_value(shown[l], key), **st[l])
+        for i, ((lo, hi), l) in enumerate(bands.items()):
+            ax.fill_between(t, lo, hi, color="0.82", zorder=0, label=f"{doc.get('level', 0.95):.0%} χ² band"
+                            if i == 0 else None)
+        if dof is not None:
+            ax.axhline(dof, color="k", lw=0.6)
+        if g == 0:
+            vals = np.concatenate([curves[l][w] for l in group] + [np.asarray(lo)[w] for lo, _ in bands]
+                                  + [np.asarray(hi)[w] for _, hi in bands])
+            vals = vals[np.isfinite(vals)]
+            if vals.size:
+                top = float(np.percentile(vals, 99.5))
+                ax.set_ylim(0, top * 1.15)
+                clipped = [l for l in group if np.nanmax(curves[l]) > top * 1.15]
+                if clipped:
+                    notes.append(f"{', '.join(clipped)} clipped at the top (the first steps)")
+            notes += coinciding(curves, w)
+            ax.set_title(ctx["title"], fontsize=9)
+        else:
+            ax.set_yscale("log")
+            ax.set_title("filters far from consistency (own log scale)", fontsize=9)
+        ax.set_ylabel(ylabel if g == 0 else ylabel.split(" (")[0])
+        ax.grid(True, which="both", alpha=0.3)
+    axs[-1, 0].set_xlabel("time (s)")
+    _legend(fig, axs, "; ".join(n if isinstance(n, str) else coincide_note([n]) for n in notes))
+    fig.savefig(ctx["folder"] / f"{key}.png", dpi=110)
+    ctx["plt"].close(fig)
+
+
+def _error_cdf(ctx):
+    """P(a run's RMS position error ≤ x): what a fire-control engineer quotes."""
+    doc, filters, st = ctx["doc"], ctx["filters"], ctx["st"]
+    shown = {l: f for l, f in filters.items() if f.get("cdf")}
+    if not shown:
+        return
+    pu = doc.get("units", ("m", "m/s"))[0]
+    fig, axs = _grid(ctx["plt"], 1, 1, height=3.6)
+    ax = axs[0, 0]
+    every = max(len(next(iter(shown.values()))["cdf"]["err_pos"]) // 8, 1)
+    for i, (l, f) in enumerate(shown.items()):
+        x, p = arr(f["cdf"]["err_pos"]), arr(f["cdf"]["probability"])
+        s = f["summary"]
+        label = f"{l} (p50 {s['err_pos_p50']:.4g}, p90 {s['err_pos_p90']:.4g}, p99 {s['err_pos_p99']:.4g})"
+        ax.plot(x, p, drawstyle="steps-post", label=label, **(st[l] | {"markevery": (int(i * every / len(shown)), every)}))
+    for q in (0.5, 0.9, 0.99):
+        ax.axhline(q, color="0.5", lw=0.6, ls=":")
+    lo = min(float(np.nanmin(arr(f["cdf"]["err_pos"]))) for f in shown.values())
+    hi = max(float(np.nanmax(arr(f["cdf"]["err_pos"]))) for f in shown.values())
+    if lo > 0 and hi > 5 * lo:
+        plain_log(ax, "x")
+    ax.set_ylim(0, 1.005)
+    ax.set_xlabel(f"run's RMS position error over the report window ({pu})")
+    ax.set_ylabel("fraction of runs with error ≤ x")
+    ax.set_title(ctx["title"], fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
+    _legend(fig, axs, coincide_note(coinciding({l: arr(f["cdf"]["err_pos"]) for l, f in shown.items()},
+                                               slice(None))))
+    fig.savefig(ctx["folder"] / "error_cdf.png", dpi=110)
+    ctx["plt"].close(fig)
+
+
+def plot_track(doc, example, folder: Path):
+    """The true path seen from above, coloured by each filter's per-step position RMSE (errors
+    along the path). The filters near the others share one colour scale; one far from them
+    has its own, beside its panel."""
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+
+    truth = np.asarray(example["truth"], float)
+    xy = truth[:, [0, 2]] / 1000.0
+    filters = doc["filters"]
+    vals = {label: arr(f["series"]["rmse_pos"]) for label, f in filters.items()}
+    main, out = split_outliers({l: f["summary"].get("rmse_pos") for l, f in filters.items()})
+
+    def norm_of(group):
+        finite = np.concatenate([vals[l][np.isfinite(vals[l])] for l in group] or [np.zeros(0)])
+        lo, hi = (np.percentile(finite, 2), np.percentile(finite, 98)) if finite.size else (1.0, 10.0)
+        return plt.Normalize(max(lo, 0.0), max(hi, lo + 1e-9))
+
+    shared = norm_of(main)
+    k = len(filters)
+    cols = min(k, 3)
+    rows = -(-k // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.4 * cols, 3.9 * rows), squeeze=False, layout="constrained")
+    seg = np.stack([xy[:-1], xy[1:]], axis=1)
+    for ax, (label, v) in zip(axes.flat, vals.items()):
+        norm = shared if label in main else norm_of([label])
+        lc = LineCollection(seg, cmap="viridis", norm=norm, linewidths=2.5)
+        lc.set_array(v[1:])
+        ax.add_collection(lc)
+        ax.plot([0], [0], "k^", ms=7)  # the sensor
+        ax.autoscale()
+        ax.set_aspect("equal", adjustable="datalim")
+        own = "" if label in main else " — own colour scale"
+        ax.set_title(f"{label}: RMSE {filters[label]['summary']['rmse_pos']:.1f} m{own}", fontsize=8)
+        ax.set_xlabel("east (km)", fontsize=8)
+        ax.set_ylabel("north (km)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(True, alpha=0.3)
+        if label not in main:
+            fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap="viridis"), ax=ax, shrink=0.8, location="bottom",
+                         label=f"{label}: position RMSE (m)")
+    for ax in list(axes.flat)[k:]:
+        ax.axis("off")
+    fig.colorbar(plt.cm.ScalarMappable(norm=shared, cmap="viridis"), ax=[a for a, l in zip(axes.flat, vals) if l in main],
+                 shrink=0.8, label="position RMSE (m)")
+    fig.suptitle(f"{doc['name']} — {doc['runs']} runs: error along the path", fontsize=10)
+    fig.savefig(folder / "track.png", dpi=110)
+    plt.close(fig)
+
+
+def _window_spans(doc):
+    """Named windows given as [t0, t1] in the experiment file (not "rest")."""
+    table = doc.get("experiment", {}).get("report", {}).get("windows", {})
+    return {w: v for w, v in table.items() if isinstance(v, list) and w in doc.get("windows", [])}
+
+
+def plot_example(doc, example, t, dim, folder: Path, st=None):
+    """Run 0: true and estimated position and velocity (``run0.png``), and the errors with each
+    filter's own ±3σ envelope from its covariance (``run0_error.png``; paper 002 Figs. 4–7)."""
+    import matplotlib.pyplot as plt
+
+    truth = np.asarray(example["truth"], float)
+    est = {k: np.asarray(v, float) for k, v in example["estimates"].items()}
+    sd = {k: arr(v) for k, v in (example.get("sd") or {}).items()}
+    z = np.asarray(example["measurements"], float) if "measurements" in example else None
+    pu, vu = doc.get("units", ("m", "m/s"))
+    AX = doc.get("axes", AXES)
+    st = st or styles(list(est), len(t))
+    names = [("position", pu, 0), ("velocity", vu, 1)]
+    for kind in ("state", "error"):
+        fig, axes = plt.subplots(2, dim, figsize=(5 * dim + 2.2, 6), sharex=True, squeeze=False, layout="constrained")
+        for a in range(dim):
+            for row, (q, unit, j) in enumerate(names):
+                ax = axes[row, a]
+                col = 2 * a + j
+                if kind == "state":
+                    if z is not None and j == 0:
+                        ax.plot(t, z[:, a], ".", color="0.7", ms=2, label="measured")
+                    ax.plot(t, truth[:, col], "k-", lw=1.5, label="true")
+                    for label, x in est.items():
+                        ax.plot(t, x[:, col], label=label, **(st[label] | {"lw": 1.0}))
+                else:
+                    for label, x in est.items():
+                        e = x[:, col] - truth[:, col]
+                        ax.plot(t, e, label=label, **(st[label] | {"lw": 1.0}))
+                        if label in sd:  # thin lines: several filters' envelopes stay readable over each other
+                            s3 = 3.0 * sd[label][:, col]
+                            for sign in (-1, 1):
+                                ax.plot(t, sign * s3, color=st[label]["color"], ls=st[label]["ls"], lw=0.7,
+                                        alpha=0.8)
+                    ax.axhline(0, color="k", lw=0.6)
+                    _clip_to_main(ax, est, truth, col, sd)
+                ax.set_ylabel(f"{q} {AX[a]} ({unit})" if kind == "state" else f"{q} error {AX[a]} ({unit})")
+                ax.grid(True, alpha=0.3)
+        axes[0, 0].set_title(f"{doc['name']} — run 0" + (": errors, and ±3σ of each filter's own covariance (thin lines)"
+                                                          if kind == "error" and sd else ""), fontsize=9)
+        for ax in axes[-1]:
+            ax.set_xlabel("time (s)")
+        _legend(fig, axes)
+        fig.savefig(folder / ("run0.png" if kind == "state" else "run0_error.png"), dpi=110)
+        plt.close(fig)
+
+
+def _clip_to_main(ax, est, truth, col, sd):
+    """Limit an error panel to the filters near the others: one far off would flatten the rest
+    (its curve runs off the panel, its legend entry stays)."""
+    size = {l: float(np.nanpercentile(np.abs(x[:, col] - truth[:, col]), 95)) for l, x in est.items()}
+    main, out = split_outliers(size)
+    if not out:
+        return
+    lim = max([size[l] for l in main] + [3.0 * float(np.nanpercentile(sd[l][:, col], 95)) for l in main if l in sd])
+    if np.isfinite(lim) and lim > 0:
+        ax.set_ylim(-1.6 * lim, 1.6 * lim)
+        ax.text(0.99, 0.02, f"off scale: {', '.join(out)}", transform=ax.transAxes, ha="right", va="bottom",
+                fontsize=6.5, color="0.3")
