@@ -343,10 +343,18 @@ def sample_names(d: int, windows) -> list[tuple[str, int]]:
     return names + [(f"max_pred@{w}", d + 1) for w in windows]
 
 
-def _run_samples(r: _RunErrors, w_report, w_k):
+def _accumulated_lengths(d: int, windows: dict) -> np.ndarray:
+    """Per accumulated sample (all of ``sample_names`` but the maxima), the steps of its window:
+    what a run's window sum is divided by."""
+    names = [(n, w) for n, w in sample_names(d, windows) if not n.startswith("max_pred@")]
+    return np.concatenate([np.full(w, windows[n.split("@")[1] if "@" in n else REPORT_WINDOW].sum()) for n, w in names])
+
+
+def _run_samples(r: _RunErrors, w_k):
     """One step's contributions (Q, B) to each run's sums of the accumulated samples (all of
-    ``sample_names`` but the maxima): ``w_report`` whether the step is in the report window,
-    ``w_k`` (windows,) whether it is in each named window."""
+    ``sample_names`` but the maxima): ``w_k`` (windows,) whether the step is in each named
+    window, the report window first (``with_report_window``)."""
+    w_report = w_k[0]
     ep, ev = r.e[0::2], r.e[1::2]
     upd = r.valid.astype(ep.dtype)
     sq_pred = r.e_pred**2
@@ -489,11 +497,8 @@ def _chunk(structure: TrackingStructure):
         scenario, sensor = params.scenario, params.sensor
         d, T, dt = scenario.dim, scenario.steps, scenario.dt
         windows = with_report_window(structure.window_masks(), T)
-        names = sample_names(d, windows)
-        n_acc = sum(w for n, w in names if not n.startswith("max_pred@"))
-        i_report = list(windows).index(REPORT_WINDOW)
-        lengths = np.concatenate([np.full(w, windows[n.split("@")[1]].sum() if "@" in n else windows[REPORT_WINDOW].sum())
-                                  for n, w in names if not n.startswith("max_pred@")])
+        lengths = _accumulated_lengths(d, windows)
+        n_acc = len(lengths)
         P0_cv = params.P0
         L0 = jnp.linalg.cholesky(P0_cv)
         dtype = L0.dtype
@@ -562,7 +567,7 @@ def _chunk(structure: TrackingStructure):
             bad_any = bad_any | per_run.bad
             ok = live & ~exclude[i] & ~bad_any
             sums, maxima, runmax = _lane_sums(per_run, ok, runmax, w_k, dtype)
-            acc = acc + _run_samples(per_run, w_k[i_report].astype(dtype), w_k.astype(dtype))
+            acc = acc + _run_samples(per_run, w_k.astype(dtype))
             return (sums, maxima, first), bad_any, (runmax, acc)
 
         def scan_step(carry, inp):
@@ -663,12 +668,10 @@ def recorded_sums(out, truth, layout, windows: dict | None = None) -> dict:
         out_k, truth_k, w_k = inp
         r = errors(out_k, truth_k)
         sums, maxima, runmax = _lane_sums(r, ~diverged, runmax, w_k, dtype)
-        acc = acc + _run_samples(r, w_k[0].astype(dtype), w_k.astype(dtype))
+        acc = acc + _run_samples(r, w_k.astype(dtype))
         return (runmax, acc), (sums, maxima)
 
-    acc_names = [(n, w) for n, w in sample_names(d, windows) if not n.startswith("max_pred@")]
-    lengths = np.concatenate([np.full(w, windows[n.split("@")[1] if "@" in n else REPORT_WINDOW].sum())
-                              for n, w in acc_names])
+    lengths = _accumulated_lengths(d, windows)
     carry0 = (jnp.zeros((len(names), d + 1, N), dtype), jnp.zeros((len(lengths), N), dtype))
     (runmax, acc), (sums, maxima) = jax.lax.scan(step, carry0, xs)
     res = _named(sums, _SUMS, d) | _named(maxima, _MAXIMA, d)
