@@ -70,10 +70,10 @@ def _summary_value(f, key, unit=""):
 
 
 def _label(label, f, keys):
-    """``label (v1 ± h1 u1, v2 ± h2 u2)`` of the filter's time-averaged values."""
+    """The label, then the filter's time-averaged values ``v ± h unit`` one per line (a legend
+    entry stays narrow beside the axes)."""
     parts = [_summary_value(f, k, f" {u}").strip()[1:-1] for k, u in keys]
-    parts = [p for p in parts if p]
-    return label + (f" ({', '.join(parts)})" if parts else "")
+    return "\n".join([label] + ["  " + p for p in parts if p])
 
 
 def split_outliers(values: dict, centre=None, factor=OUTLIER):
