@@ -67,6 +67,8 @@ def _at_most(path, steps, tmp, labels=None):
     if labels is not None:
         raw["filter"] = [f for f in raw["filter"] if f["label"] in labels]
         raw.pop("study", None)
+        if raw.get("report", {}).get("baseline") not in (None, *labels):  # its baseline filter cut away
+            raw["report"].pop("baseline")
     if "path" in raw["scenario"]:
         raw["scenario"]["path"] = str((path.parent / raw["scenario"]["path"]).resolve())
     for module in path.parent.glob("*.py"):  # a filter of one's own the file names (kind = "module:factory")
