@@ -121,14 +121,19 @@ def missing(v) -> bool:
     return v is None or (isinstance(v, (float, np.floating)) and not math.isfinite(v))
 
 
+def format_value(v, spec) -> str:
+    """A table cell: ``spec`` (a percentage without its sign), or "—" for a missing value."""
+    if missing(v):
+        return "—"
+    s = spec.format(v)
+    return s.rstrip("%") if spec.endswith("%}") else s
+
+
 def with_half_width(v, hw, spec="{:.2f}", sign=False) -> str:
     """``34.45 ± 0.05``: the half-width to two significant digits, the value to the same decimal;
     the column's own format when there is no half-width."""
-    if missing(v):
-        return "—"
-    if missing(hw):
-        s = spec.format(v)
-        return s.rstrip("%") if spec.endswith("%}") else s
+    if missing(v) or missing(hw):
+        return format_value(v, spec)
     if hw == 0:
         return f"{v:{'+' if sign else ''}.{_decimals(spec)}f} ± 0"
     d = max(0, 1 - math.floor(math.log10(abs(hw))))

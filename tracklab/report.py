@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tracklab.intervals import missing, with_half_width
+from tracklab.intervals import format_value, missing, with_half_width
 from tracklab.metrics import AXES, PAIRED, REPORT_WINDOW, statistics
 
 # (summary key, title, format); {p}/{v} are the position/velocity units, {a} an axis name
@@ -47,10 +47,7 @@ WINDOW_COLUMNS = [  # per named prediction-error window
 
 
 def _fmt(v, spec):
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "—"
-    s = spec.format(v)
-    return s.rstrip("%") if spec.endswith("%}") else s
+    return format_value(v, spec)
 
 
 def _diverged_cell(f) -> str:

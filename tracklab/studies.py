@@ -164,7 +164,6 @@ def tune_report(exp, res, folder: Path, *, steps, lr, tuned_file, log_lines):
 def run_study(exp, study, results_dir, quick=False, log=print):
     """Rebuild one study under ``results_dir``; ``quick``: a few steps and runs, as a smoke check."""
     from tracklab.config import load_experiment
-    from tracklab.output import write_text_atomically
     from tracklab.config.paths import parse_grid
     from tracklab.sweep import sweep, write_sweep
 
