@@ -251,8 +251,13 @@ def test_airborne_experiment_writes_results_and_float32_agrees(tmp_path):
     path.write_text(EXPERIMENT)
     exp = load_experiment(path)
     doc = exp.run(out=tmp_path / "out", figures=False)
-    assert (tmp_path / "out" / "table.md").read_text().count("| joint |") == 7  # six quantities, settling and lock
+    # six quantities, two paired differences, the percentiles, settling and lock
+    assert (tmp_path / "out" / "table.md").read_text().count("| joint |") == 10
     joint, dec, cls = (doc["filters"][k]["summary"] for k in ("joint", "decoupled", "classical"))
+    hw = doc["filters"]["decoupled"]["half_width"]
+    assert 0 < hw["pointing[steady]"] < joint["pointing[steady]"] and np.isfinite(hw["nees[steady]"])
+    assert doc["filters"]["decoupled"]["paired"]["baseline"] == "joint"
+    assert joint["pointing_p50[steady]"] <= joint["pointing_p90[steady]"] <= joint["pointing_p99[steady]"]
     for s in (joint, dec, cls):
         assert s["lost_lock"] == 0
     # the filters' pointing errors in steady state are well below the single-sample noise (1 mrad)
@@ -303,8 +308,12 @@ def test_airborne_statistics_do_not_depend_on_the_chunk_size(tmp_path):
     path.write_text(EXPERIMENT.split("[[tracker]]")[0] + '[[tracker]]\nlabel = "classical"\nkind = "classical"\n')
     exp = load_experiment(path)
     exp.chunk = 12
-    whole, _, _ = exp.monte_carlo()
+    whole = exp.monte_carlo()
     exp.chunk = 5  # 3 chunks, the last one padded with 3 masked runs
-    chunked, _, _ = exp.monte_carlo()
-    for key, v in whole["classical"].items():
-        np.testing.assert_allclose(chunked["classical"][key], v, rtol=1e-12, atol=1e-12, err_msg=key)
+    chunked = exp.monte_carlo()
+    for key, v in whole.sums["classical"].items():
+        np.testing.assert_allclose(chunked.sums["classical"][key], v, rtol=1e-12, atol=1e-12, err_msg=key)
+    a, b = whole.samples.pair(0, 0), chunked.samples.pair(0, 0)  # the runs' samples, behind the intervals
+    assert a.n == b.n
+    np.testing.assert_allclose(b.mean_f, a.mean_f, rtol=1e-12)  # NaN: the classical loops have no NEES
+    np.testing.assert_allclose(b.cov_ff, a.cov_ff, rtol=1e-9, atol=1e-12 * np.nanmax(np.abs(a.cov_ff)))

@@ -91,8 +91,8 @@ def _alone(exp, *settings):
     if hasattr(one, "simulate"):
         return one.simulate(one.runs, one.seed, chunk=exp.chunk)
     if hasattr(one, "trackers"):
-        sums, wall, comp = one.monte_carlo(chunk=exp.chunk)
-        return one.document(sums, one.runs, wall, comp, one.precision)
+        out = one.monte_carlo(chunk=exp.chunk)
+        return one.document(out.sums, out.runs, out.wall_s, out.compile_s, one.precision, out.samples)
     from tracklab.metrics import statistics
 
     return statistics(one.monte_carlo(chunk=exp.chunk), one.window, one.pred_windows)

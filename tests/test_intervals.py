@@ -199,3 +199,100 @@ def test_percentiles_equal_numpy_on_each_runs_error():
     hw = t_quantile(0.95, N - 1) * sq.std(ddof=1) / math.sqrt(N) / (2 * math.sqrt(sq.mean()))
     assert s["rmse_pos"] == pytest.approx(math.sqrt(sq.mean()), rel=1e-12)
     assert doc["filters"]["f"]["half_width"]["rmse_pos"] == pytest.approx(hw, rel=1e-9)
+
+
+AIRBORNE = """
+[experiment]
+name = "airborne_tiny"
+runs = 10
+seed = 1
+chunk = 4
+
+[airborne]
+duration = 1.0
+
+[[tracker]]
+label = "joint"
+kind = "cd_ekf"
+
+[[tracker]]
+label = "classical"
+kind = "classical"
+"""
+
+SERVO = """
+[experiment]
+name = "servo_tiny"
+runs = 10
+seed = 2
+chunk = 4
+
+[servo]
+frames = 300
+settle = 1.0
+
+[target]
+kind = "sine"
+
+[[estimator]]
+label = "KF"
+kind = "kf"
+q = 0.01
+
+[[case]]
+mode = "on_axis"
+estimator = "KF"
+
+[[case]]
+mode = "double_loop"
+"""
+
+
+def _t_half_width(v):
+    return t_quantile(0.95, len(v) - 1) * np.std(v, ddof=1) / math.sqrt(len(v))
+
+
+def test_closed_loop_intervals_equal_numpy_on_the_runs(tmp_path):
+    """The closed loops' intervals, streamed over chunks (the last one padded), equal the t
+    intervals NumPy computes from the runs' own values; the paired ones the t interval of the
+    runs' differences (delta method for an RMS); the percentiles NumPy's."""
+    exp = load_experiment(write(tmp_path, AIRBORNE, "a.toml"))
+    out = exp.monte_carlo()
+    doc = exp.document(out.sums, out.runs, out.wall_s, out.compile_s, "float64", out.samples)
+    w = "acquisition"
+    runs = {label: out.samples.kept(i, 0) for i, label in enumerate(("joint", "classical"))}  # RMS pointing (mrad)
+    assert len(runs["joint"]) == len(runs["classical"]) == 10
+    value = {}
+    for label, r in runs.items():
+        f = doc["filters"][label]
+        sq = r**2
+        value[label] = math.sqrt(sq.mean())
+        assert f["summary"][f"pointing[{w}]"] == pytest.approx(value[label], rel=1e-9)
+        assert f["half_width"][f"pointing[{w}]"] == pytest.approx(_t_half_width(sq) / (2 * value[label]), rel=1e-6)
+        np.testing.assert_allclose([f["summary"][f"pointing_p{p}[{w}]"] for p in (50, 90, 99)],
+                                   np.percentile(r, [50, 90, 99]), rtol=1e-12)
+    d = runs["classical"] ** 2 / (2 * value["classical"]) - runs["joint"] ** 2 / (2 * value["joint"])
+    paired = doc["filters"]["classical"]["paired"][f"pointing[{w}]"]
+    assert paired["difference"] == pytest.approx(value["classical"] - value["joint"], rel=1e-9)
+    assert paired["half_width"] == pytest.approx(_t_half_width(d), rel=1e-6)
+    assert doc["filters"]["joint"]["paired"][f"pointing[{w}]"] == {"difference": 0.0, "half_width": 0.0,
+                                                                   "significant": False}
+
+    exp = load_experiment(write(tmp_path, SERVO, "s.toml"))
+    doc = exp.simulate(exp.runs, exp.seed)
+    from tracklab.montecarlo import runner
+    from tracklab.servo.world import world
+
+    out = runner.run(world(exp.structure()), exp.params(), exp.runs, exp.seed)
+    kf, loop = (out.samples.kept(i, 0) for i in range(2))  # each run's maximum tracking error (′)
+    for label, r in (("on_axis, KF", kf), ("double_loop", loop)):
+        f = doc["filters"][label]
+        assert f["summary"]["max_track_err"] == pytest.approx(r.mean(), rel=1e-9)
+        assert f["half_width"]["max_track_err"] == pytest.approx(_t_half_width(r), rel=1e-6)
+        np.testing.assert_allclose([f["summary"][f"max_track_err_p{p}"] for p in (50, 90, 99)],
+                                   np.percentile(r, [50, 90, 99]), rtol=1e-12)
+        assert f["intervals"]["diverged_fraction"] == [0.0, pytest.approx(wilson(0, 10)[1])]
+    paired = doc["filters"]["double_loop"]["paired"]["max_track_err"]
+    assert paired["difference"] == pytest.approx(loop.mean() - kf.mean(), rel=1e-9)
+    assert paired["half_width"] == pytest.approx(_t_half_width(loop - kf), rel=1e-6)
+    assert math.isnan(doc["filters"]["double_loop"]["summary"]["max_rate_err"])  # no estimator, no rate error

@@ -84,10 +84,7 @@ def _sums(exp, chunk):
     if hasattr(exp, "simulate"):  # servo: the summary of each case (from its sums)
         doc = exp.simulate(exp.runs, exp.seed, chunk=chunk)
         return {f"{c}/{k}": np.asarray(v, float) for c, f in doc["filters"].items() for k, v in f["summary"].items()}
-    if hasattr(exp, "trackers"):  # airborne
-        sums, _, _ = exp.monte_carlo(chunk=chunk)
-    else:
-        sums = exp.monte_carlo(chunk=chunk).sums
+    sums = exp.monte_carlo(chunk=chunk).sums
     return {f"{lab}/{k}": np.asarray(v, float) for lab, d in sums.items() for k, v in d.items()}
 
 

@@ -9,6 +9,8 @@
 * ``run0.png``, ``run0_error.png``: run 0's estimates and errors, with each filter's ±3σ.
 * ``track.png``: the path seen from above, coloured by each filter's per-step RMSE.
 
+The closed-loop worlds have their own (``plot_airborne``, ``plot_servo``).
+
 Curves that coincide stay distinguishable: each filter has its own colour, line style and
 markers (staggered along the curve), the legend sits outside the axes with each filter's
 time-averaged value ± its half-width, and a note names the filters whose curves coincide.
@@ -365,6 +367,28 @@ def _consistency(ctx, key, ylabel, dof):
     ctx["plt"].close(fig)
 
 
+def _cdf_panel(ax, shown, st, key, pct_key=None):
+    """P(a run's value ≤ x) of each filter's ``cdf[key]``; its percentiles in the legend when
+    ``pct_key`` (a summary key with ``{p}``) is given."""
+    every = max(len(next(iter(shown.values()))["cdf"][key]) // 8, 1)
+    for i, (l, f) in enumerate(shown.items()):
+        x, p = arr(f["cdf"][key]), arr(f["cdf"]["probability"])
+        label = l
+        if pct_key is not None:
+            s = f["summary"]
+            label += " (" + ", ".join(f"p{q} {s[pct_key.format(p=q)]:.4g}" for q in (50, 90, 99)) + ")"
+        ax.plot(x, p, drawstyle="steps-post", label=label, **(st[l] | {"markevery": (int(i * every / len(shown)), every)}))
+    for q in (0.5, 0.9, 0.99):
+        ax.axhline(q, color="0.5", lw=0.6, ls=":")
+    lo = min(float(np.nanmin(arr(f["cdf"][key]))) for f in shown.values())
+    hi = max(float(np.nanmax(arr(f["cdf"][key]))) for f in shown.values())
+    if lo > 0 and hi > 5 * lo:
+        plain_log(ax, "x")
+    ax.set_ylim(0, 1.005)
+    ax.grid(True, which="both", alpha=0.3)
+    return coinciding({l: arr(f["cdf"][key]) for l, f in shown.items()}, slice(None))
+
+
 def _error_cdf(ctx):
     """P(a run's RMS position error ≤ x): what a fire-control engineer quotes."""
     doc, filters, st = ctx["doc"], ctx["filters"], ctx["st"]
@@ -374,25 +398,11 @@ def _error_cdf(ctx):
     pu = doc.get("units", ("m", "m/s"))[0]
     fig, axs = _grid(ctx["plt"], 1, 1, height=3.6)
     ax = axs[0, 0]
-    every = max(len(next(iter(shown.values()))["cdf"]["err_pos"]) // 8, 1)
-    for i, (l, f) in enumerate(shown.items()):
-        x, p = arr(f["cdf"]["err_pos"]), arr(f["cdf"]["probability"])
-        s = f["summary"]
-        label = f"{l} (p50 {s['err_pos_p50']:.4g}, p90 {s['err_pos_p90']:.4g}, p99 {s['err_pos_p99']:.4g})"
-        ax.plot(x, p, drawstyle="steps-post", label=label, **(st[l] | {"markevery": (int(i * every / len(shown)), every)}))
-    for q in (0.5, 0.9, 0.99):
-        ax.axhline(q, color="0.5", lw=0.6, ls=":")
-    lo = min(float(np.nanmin(arr(f["cdf"]["err_pos"]))) for f in shown.values())
-    hi = max(float(np.nanmax(arr(f["cdf"]["err_pos"]))) for f in shown.values())
-    if lo > 0 and hi > 5 * lo:
-        plain_log(ax, "x")
-    ax.set_ylim(0, 1.005)
+    groups = _cdf_panel(ax, shown, st, "err_pos", "err_pos_p{p}")
     ax.set_xlabel(f"run's RMS position error over the report window ({pu})")
     ax.set_ylabel("fraction of runs with error ≤ x")
     ax.set_title(ctx["title"], fontsize=9)
-    ax.grid(True, which="both", alpha=0.3)
-    _legend(fig, axs, coincide_note(coinciding({l: arr(f["cdf"]["err_pos"]) for l, f in shown.items()},
-                                               slice(None))))
+    _legend(fig, axs, coincide_note(groups))
     fig.savefig(ctx["folder"] / "error_cdf.png", dpi=110)
     ctx["plt"].close(fig)
 
@@ -512,3 +522,142 @@ def _clip_to_main(ax, est, truth, col, sd):
         ax.set_ylim(-1.6 * lim, 1.6 * lim)
         ax.text(0.99, 0.02, f"off scale: {', '.join(out)}", transform=ax.transAxes, ha="right", va="bottom",
                 fontsize=6.5, color="0.3")
+
+
+# the closed-loop worlds
+
+AIRBORNE_PANELS = [  # file, [(series key, axis label)], the paper's figure
+    ("pointing_error.png", [("pointing", "true pointing error RMS (mrad)")], "paper 001 Fig. 3"),
+    ("rate_error.png", [("los_rate", "LOS-rate error RMS (mrad/s)"), ("range_rate", "range-rate error RMS (m/s)")],
+     "paper 001 Fig. 4"),
+    ("range_error.png", [("range", "range error RMS (m)"), ("range_rate", "range-rate error RMS (m/s)")],
+     "paper 001 Fig. 6"),
+]
+
+
+def _range_axis(ax, t, rng):
+    """The nominal range (km) along the top of a time axis."""
+    top = ax.secondary_xaxis("top", functions=(lambda x: np.interp(x, t, rng),
+                                               lambda r: np.interp(r, rng[::-1], t[::-1])))
+    top.set_xticks([r for r in (20, 15, 10, 7, 5, 4, 3, 2) if rng.min() <= r <= rng.max()])
+    top.set_xlabel("nominal range (km)", fontsize=8)
+
+
+def plot_airborne(doc, folder: Path):
+    """The figures of an airborne results folder: per-period RMS errors with their confidence bands
+    (``pointing_error.png``, ``rate_error.png``, ``range_error.png``: paper 001 Figs. 3, 4, 6), the
+    average NEES with its χ² band (``nees.png``) and the distribution of the runs' RMS pointing
+    errors per window (``error_cdf.png``)."""
+    plt = pyplot()
+    t, rng = np.asarray(doc["t"]), np.asarray(doc["nominal_range"]) / 1e3
+    filters = doc["filters"]
+    st = styles(list(filters), len(t))
+    level = doc.get("level", 0.95)
+    title = f"{doc['name']}: {doc['runs']} runs"
+    for name, rows, ref in AIRBORNE_PANELS:
+        fig, axes = _grid(plt, len(rows), 1, width=8.0, height=3.0)
+        for ax, (key, ylabel) in zip(axes[:, 0], rows):
+            for label, f in filters.items():
+                v = arr(f["series"][key])
+                if np.isfinite(v).any():
+                    hw = f["series"].get(f"{key}_hw")
+                    _band(ax, t, v, None if hw is None else arr(hw), st[label] | {"lw": 1.0}, label)
+                else:  # no run in lock: nothing to draw, said in the legend
+                    ax.plot([], [], " ", label=f"{label}: lost lock in every run")
+            ax.set_ylabel(ylabel)
+            plain_log(ax)
+            ax.grid(True, which="both", alpha=0.3)
+        _range_axis(axes[0, 0], t, rng)
+        axes[-1, 0].set_xlabel("time (s)")
+        axes[0, 0].set_title(f"{title} ({ref})", fontsize=9)
+        _legend(fig, axes, f"bands: {level:.0%} confidence of each period's RMS over the runs in lock")
+        fig.savefig(folder / name, dpi=110)
+        plt.close(fig)
+    shown = {l: f for l, f in filters.items() if np.isfinite(arr(f["series"]["nees"])).any()}
+    if shown:
+        fig, axes = _grid(plt, 1, 1, width=8.0, height=3.4)
+        ax = axes[0, 0]
+        for label, f in shown.items():
+            ax.plot(t, arr(f["series"]["nees"]), label=label + _summary_value(f, "nees"), **(st[label] | {"lw": 1.0}))
+        f0 = next(iter(shown.values()))["series"]
+        if "nees_lo" in f0:
+            ax.fill_between(t, arr(f0["nees_lo"]), arr(f0["nees_hi"]), color="0.82", zorder=0,
+                            label=f"{level:.0%} χ² band")
+        ax.axhline(9, color="k", lw=0.6)
+        plain_log(ax)
+        ax.set_ylabel("average NEES (9 states)")
+        ax.set_xlabel("time (s)")
+        ax.grid(True, which="both", alpha=0.3)
+        _range_axis(ax, t, rng)
+        ax.set_title(title, fontsize=9)
+        _legend(fig, axes, "in brackets: the NEES averaged over the whole run")
+        fig.savefig(folder / "nees.png", dpi=110)
+        plt.close(fig)
+    windows = [w for w in doc.get("windows", []) if any(f"pointing[{w}]" in f.get("cdf", {}) for f in filters.values())]
+    if windows:
+        cols = min(len(windows), 3)
+        rows = -(-len(windows) // cols)
+        fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols + 2.2, 3.0 * rows + 0.5), squeeze=False,
+                                 layout="constrained")
+        groups = []
+        for ax, w in zip(axes.flat, windows):
+            have = {l: f for l, f in filters.items() if f"pointing[{w}]" in f.get("cdf", {})}
+            groups += _cdf_panel(ax, have, st, f"pointing[{w}]")
+            ax.set_title(w, fontsize=9)
+            ax.set_xlabel("run's RMS pointing error (mrad)", fontsize=8)
+        for ax in axes[:, 0]:
+            ax.set_ylabel("fraction of runs ≤ x")
+        for ax in list(axes.flat)[len(windows):]:
+            ax.axis("off")
+        fig.suptitle(f"{title}: distribution of the runs' RMS true pointing error per window", fontsize=9)
+        _legend(fig, axes, "; ".join(dict.fromkeys(coincide_note([g]) for g in groups)))
+        fig.savefig(folder / "error_cdf.png", dpi=110)
+        plt.close(fig)
+
+
+def plot_servo(doc, folder: Path):
+    """The figures of a servo results folder: run 0's tracking error (``tracking_error.png``, paper
+    003 Figs. 5–7) and rate-estimate error (``rate_error.png``, Fig. 4), and the distribution of
+    the runs' maximum tracking errors (``error_cdf.png``)."""
+    plt = pyplot()
+    ex = doc["example_run"]
+    filters = doc["filters"]
+    t = np.asarray(ex["t"])
+    st = styles(list(filters), len(t))
+    fig, axes = _grid(plt, 1, 1, width=8.0, height=3.6)
+    ax = axes[0, 0]
+    for label, e in ex["error"].items():
+        ax.plot(t, 60.0 * arr(e), label=label, **(st[label] | {"lw": 0.9}))
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("tracking error (′)")
+    ax.set_title(f"{doc['name']} — run 0 (paper 003 Figs. 5–7)", fontsize=9)
+    ax.grid(True, alpha=0.3)
+    _legend(fig, axes)
+    fig.savefig(folder / "tracking_error.png", dpi=110)
+    plt.close(fig)
+    if ex["rate_error"]:
+        tf = np.asarray(ex["t_frames"])
+        st_frames = styles(list(filters), len(tf))
+        fig, axes = _grid(plt, 1, 1, width=8.0, height=3.2)
+        ax = axes[0, 0]
+        for label, e in ex["rate_error"].items():
+            ax.plot(tf, arr(e), label=label, **(st_frames[label] | {"lw": 0.9}))
+        ax.set_xlabel("time (s)")
+        ax.set_ylabel("rate-estimate error (°/s)")
+        ax.set_title(f"{doc['name']} — run 0 (paper 003 Fig. 4)", fontsize=9)
+        ax.set_ylim(-1, 1)
+        ax.grid(True, alpha=0.3)
+        _legend(fig, axes)
+        fig.savefig(folder / "rate_error.png", dpi=110)
+        plt.close(fig)
+    shown = {l: f for l, f in filters.items() if f.get("cdf")}
+    if shown:
+        fig, axes = _grid(plt, 1, 1, width=8.0, height=3.6)
+        ax = axes[0, 0]
+        groups = _cdf_panel(ax, shown, st, "max_track_err", "max_track_err_p{p}")
+        ax.set_xlabel("run's maximum tracking error after settling (′)")
+        ax.set_ylabel("fraction of runs with error ≤ x")
+        ax.set_title(f"{doc['name']}: {doc['runs']} runs", fontsize=9)
+        _legend(fig, axes, coincide_note(groups))
+        fig.savefig(folder / "error_cdf.png", dpi=110)
+        plt.close(fig)

@@ -97,6 +97,13 @@ def _step_half_width(mean, sum_sq, c, level):
         return tq * np.sqrt(_div(var, c))
 
 
+def rms_half_width(ms, sum_sq2, c, level=LEVEL):
+    """Per-step half-width of an RMS over c runs, sqrt(ms), by the delta method: from the mean
+    square ``ms`` and the sum over the runs of each run's squared value squared (``sum_sq2``)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return _step_half_width(ms, sum_sq2, c, level) / (2.0 * np.sqrt(ms))
+
+
 def per_step(sums, dim, axes=AXES, level=LEVEL):
     """Per-step series for one filter from its sums; ``*_hw`` are the half-widths of the per-step
     RMSE and mean error at ``level`` (over the runs; an RMSE's by the delta method)."""
@@ -132,14 +139,12 @@ def per_step(sums, dim, axes=AXES, level=LEVEL):
             for tag, sq, four, sm in (("", msep, "sum4_pos", "sum_pos"), ("v", msev, "sum4_vel", "sum_vel")):
                 if four not in sums:
                     continue
-                hw_mse = _step_half_width(sq[:, a], sums[four][:, a], c, level)
-                s[f"rmse_{tag}{ax}_hw"] = hw_mse / (2.0 * np.sqrt(sq[:, a]))
+                s[f"rmse_{tag}{ax}_hw"] = rms_half_width(sq[:, a], sums[four][:, a], c, level)
                 s[f"mean_err_{tag}{ax}_hw"] = _step_half_width(_div(sums[sm][:, a], c), sums[f"sumsq_{sm[4:]}"][:, a],
                                                                c, level)
         for q in ("pos", "vel"):
             if f"sumsq2_{q}" in sums:
-                hw_mse = _step_half_width(s[f"mse_{q}"], sums[f"sumsq2_{q}"], c, level)
-                s[f"rmse_{q}_hw"] = hw_mse / (2.0 * s[f"rmse_{q}"])
+                s[f"rmse_{q}_hw"] = rms_half_width(s[f"mse_{q}"], sums[f"sumsq2_{q}"], c, level)
     s["nees"] = _div(sums["sum_nees"], c)
     s["nees_lo"], s["nees_hi"] = average_chi2_interval(2 * dim, c)
     s["nees_in_bounds"] = _inside(s["nees"], s["nees_lo"], s["nees_hi"])
@@ -245,42 +250,40 @@ def sample_statistics(names, axes, windows):
     return stats
 
 
-def with_intervals(result, filters, level=LEVEL, baseline=None):
-    """Each filter's summary from its runs' samples with the half-widths of their ``level``
-    intervals (``half_width``), the Wilson interval of its diverged fraction, the percentiles of
-    its runs' RMS position error with their distribution (``cdf``), and (``paired``) its
-    differences to the ``baseline`` filter (default the first) on their common runs."""
-    samples = result.samples
-    labels = list(result.labels)
-    windows = [n.split("@", 1)[1] for n, _ in result.sample_names if n.startswith("max_pred@")]
-    stats = sample_statistics(result.sample_names, tuple(getattr(result, "axes", AXES)), windows)
+def lane_intervals(samples, labels, stats, level=LEVEL, baseline=None, paired=(), diverged=None, kept=()):
+    """Per lane (filter, tracker or case): its summary numbers from its runs' samples and what a
+    reviewer needs beside them.
+
+    ``stats``: summary key -> statistic of the samples' means (``intervals.value_and_gradient``);
+    ``paired``: the keys compared with the ``baseline`` lane (default the first) on the runs healthy
+    in both; ``diverged``: label -> (diverged runs, runs), given its Wilson interval; ``kept``:
+    (index of a kept per-run value, summary key with ``{p}`` for its percentiles, its cdf key).
+    Returns label -> {"summary", "half_width", "intervals", "paired", "cdf"}.
+    """
     base = labels.index(baseline) if baseline in labels else 0
+    out = {}
     for li, label in enumerate(labels):
-        f = filters[label]
-        summary, hw = f["summary"], {}
+        summary, hw = {}, {}
         own = samples.pair(li, li)
         for key, stat in stats.items():
             v, g = value_and_gradient(stat, own.mean_f)
             summary[key] = float(v) if own.n > 0 else float("nan")
             hw[key] = half_width(g, own.cov_ff, own.n, level) if np.isfinite(v) else float("nan")
-        if "pcrlb_pos" in summary:
-            summary["rmse_pos_over_pcrlb"] = summary["rmse_pos"] / summary["pcrlb_pos"]
-            hw["rmse_pos_over_pcrlb"] = hw["rmse_pos"] / summary["pcrlb_pos"]
-        runs = summary.get("runs", 0)
-        summary["diverged_fraction"] = summary["diverged"] / runs if runs else float("nan")
-        f["intervals"] = {"diverged_fraction": list(wilson(summary["diverged"], runs, level))}
-        errors = samples.kept(li, 0)
-        for p, v in zip(PERCENTILES, np.percentile(errors, PERCENTILES) if errors.size else [np.nan] * 3):
-            summary[f"err_pos_p{p}"] = float(v)
-        if errors.size:
-            q = np.linspace(0.0, 1.0, CDF_POINTS)
-            f["cdf"] = {"probability": q, "err_pos": np.quantile(errors, q)}
-        f["half_width"] = hw
+        lane = {"summary": summary, "half_width": hw}
+        if diverged is not None:
+            k, runs = diverged[label]
+            summary["diverged_fraction"] = k / runs if runs else float("nan")
+            lane["intervals"] = {"diverged_fraction": list(wilson(k, runs, level))}
+        q = np.linspace(0.0, 1.0, CDF_POINTS)
+        for j, pct_key, cdf_key in kept:
+            values = samples.kept(li, j)
+            for p, v in zip(PERCENTILES, np.percentile(values, PERCENTILES) if values.size else [np.nan] * 3):
+                summary[pct_key.format(p=p)] = float(v)
+            if values.size:
+                lane.setdefault("cdf", {"probability": q})[cdf_key] = np.quantile(values, q)
         pair = samples.pair(li, base)
-        paired = {"baseline": labels[base], "runs": pair.n}
-        for key in PAIRED:
-            if key not in stats:
-                continue
+        pd = {"baseline": labels[base], "runs": pair.n}
+        for key in paired:
             vf, gf = value_and_gradient(stats[key], pair.mean_f)
             vb, gb = value_and_gradient(stats[key], pair.mean_g)
             h = paired_half_width(gf, gb, pair.cov_ff, pair.cov_gg, pair.cov_fg, pair.n, level)
@@ -288,9 +291,32 @@ def with_intervals(result, filters, level=LEVEL, baseline=None):
             rounding = 1e-9 * max(abs(float(vf)), abs(float(vb)))  # same numbers but for the last digits
             if abs(diff) <= rounding and h <= rounding:
                 diff, h = 0.0, 0.0
-            paired[key] = {"difference": diff, "half_width": h,
-                           "significant": bool(np.isfinite(h) and abs(diff) > h) if li != base else False}
-        f["paired"] = paired
+            pd[key] = {"difference": diff, "half_width": h,
+                       "significant": bool(np.isfinite(h) and abs(diff) > h) if li != base else False}
+        lane["paired"] = pd
+        out[label] = lane
+    return out
+
+
+def with_intervals(result, filters, level=LEVEL, baseline=None):
+    """Each filter's summary from its runs' samples with the half-widths of their ``level``
+    intervals (``half_width``), the Wilson interval of its diverged fraction, the percentiles of
+    its runs' RMS position error with their distribution (``cdf``), and (``paired``) its
+    differences to the ``baseline`` filter (default the first) on their common runs."""
+    labels = list(result.labels)
+    windows = [n.split("@", 1)[1] for n, _ in result.sample_names if n.startswith("max_pred@")]
+    stats = sample_statistics(result.sample_names, tuple(getattr(result, "axes", AXES)), windows)
+    diverged = {l: (filters[l]["summary"]["diverged"], filters[l]["summary"].get("runs", 0)) for l in labels}
+    lanes = lane_intervals(result.samples, labels, stats, level, baseline, [k for k in PAIRED if k in stats],
+                           diverged, kept=[(0, "err_pos_p{p}", "err_pos")])
+    for label, lane in lanes.items():
+        f = filters[label]
+        summary = f["summary"]
+        summary.update(lane.pop("summary"))
+        f.update(lane)
+        if "pcrlb_pos" in summary:
+            summary["rmse_pos_over_pcrlb"] = summary["rmse_pos"] / summary["pcrlb_pos"]
+            f["half_width"]["rmse_pos_over_pcrlb"] = f["half_width"]["rmse_pos"] / summary["pcrlb_pos"]
     return filters
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from tracklab.intervals import format_value, missing, with_half_width
-from tracklab.metrics import AXES, PAIRED, REPORT_WINDOW, statistics
+from tracklab.metrics import AXES, REPORT_WINDOW, statistics
 
 # (summary key, title, format); {p}/{v} are the position/velocity units, {a} an axis name
 COLUMNS = [
@@ -36,10 +36,14 @@ COLUMNS = [
     ("err_pos_p50", "run err p50 ({p})", "{:.{d}f}"),
     ("err_pos_p90", "run err p90 ({p})", "{:.{d}f}"),
     ("err_pos_p99", "run err p99 ({p})", "{:.{d}f}"),
+    ("max_track_err_p50", "run max error p50 (′)", "{:.3f}"),
+    ("max_track_err_p90", "run max error p90 (′)", "{:.3f}"),
+    ("max_track_err_p99", "run max error p99 (′)", "{:.3f}"),
     ("diverged", "diverged", "{:d}"),
     ("runs", "runs", "{:d}"),
 ]
-PAIRED_COLUMN = "rmse_pos"  # the paired difference table.md shows (stats.json and table.csv hold them all)
+PAIRED_COLUMNS = ("rmse_pos", "max_track_err")  # the paired difference table.md shows, the first there is
+# (stats.json and table.csv hold them all)
 WINDOW_COLUMNS = [  # per named prediction-error window
     ("pred_err_rms[{w}]", "pred err RMS {w} ({p})", "{:.{d}f}"),
     ("pred_err_max[{w}]", "pred err max {w} ({p})", "{:.{d}f}"),
@@ -50,9 +54,9 @@ def _fmt(v, spec):
     return format_value(v, spec)
 
 
-def _diverged_cell(f) -> str:
-    """``k (lo–hi %)``: the diverged runs and the Wilson interval of their fraction."""
-    k = f["summary"].get("diverged")
+def _diverged_cell(f, key="diverged") -> str:
+    """``k (lo–hi %)``: the diverged runs (summary ``key``) and the Wilson interval of their fraction."""
+    k = f["summary"].get(key)
     lo_hi = f.get("intervals", {}).get("diverged_fraction")
     if k is None or not lo_hi or missing(lo_hi[1]):
         return _fmt(k, "{:d}")
@@ -60,7 +64,7 @@ def _diverged_cell(f) -> str:
     return f"{k} ({lo:.2g}–{hi:.2g} %)"
 
 
-def _paired_cell(f, key=PAIRED_COLUMN) -> str:
+def _paired_cell(f, key) -> str:
     pd = f.get("paired", {})
     c = pd.get(key)
     if c is None:
@@ -98,16 +102,21 @@ def _baseline(stats):
     return next((f["paired"]["baseline"] for f in stats["filters"].values() if "paired" in f), None)
 
 
+def _paired_column(stats, cols):
+    """The key of the paired difference the table shows, and its column's title (None: none)."""
+    have = {k for f in stats["filters"].values() for k in f.get("paired", {})}
+    return next(((k, t) for k, t, _ in cols if k in PAIRED_COLUMNS and k in have), (None, None))
+
+
 def table_rows(stats):
     """The one-row-per-filter table: a number with an interval as ``value ± half-width``, the
     diverged runs with the interval of their fraction, and the paired difference to the baseline."""
     cols = _columns(stats)
     base = _baseline(stats)
-    p = stats.get("units", ("m", "m/s"))[0]
+    paired_key, paired_title = _paired_column(stats, cols)
     header = ["filter", "kind"] + [t for _, t, _ in cols]
-    if base is not None:
-        header.insert(2 + next((i + 1 for i, c in enumerate(cols) if c[0] == PAIRED_COLUMN), 0),
-                      f"Δ RMSE pos vs {base} ({p})")
+    if base is not None and paired_key is not None:
+        header.insert(2 + next(i + 1 for i, c in enumerate(cols) if c[0] == paired_key), f"Δ {paired_title} vs {base}")
     rows = []
     for label, f in stats["filters"].items():
         f = dict(f, label=label)
@@ -120,8 +129,8 @@ def table_rows(stats):
                 cells.append(with_half_width(f["summary"].get(k), hw[k], spec))
             else:
                 cells.append(_fmt(f["summary"].get(k), spec))
-            if k == PAIRED_COLUMN and base is not None:
-                cells.append(_paired_cell(f))
+            if k == paired_key and base is not None:
+                cells.append(_paired_cell(f, k))
         rows.append([label, f["kind"]] + cells)
     return header, rows
 
@@ -132,9 +141,16 @@ def table_caption(stats) -> str:
         return ""
     level = stats.get("level", 0.95)
     runs = stats.get("runs")
+    summaries = [f["summary"] for f in stats["filters"].values()]
+    servo = any("max_track_err" in s for s in summaries)
+    nis = any(not missing(f.get("half_width", {}).get("nis")) for f in stats["filters"].values())
     text = (f"± : half-width of the {level:.0%} confidence interval over the {runs} runs (Student t over the runs' "
-            "time-averaged values; delta method for an RMSE and the NIS). diverged: runs, with the Wilson interval of "
-            "their fraction. run err pNN: percentiles of the runs' RMS position errors.")
+            + ("values)." if servo else f"time-averaged values; delta method for an RMSE{' and the NIS' if nis else ''}).")
+            + " diverged: runs, with the Wilson interval of their fraction.")
+    if any("max_track_err_p50" in s for s in summaries):
+        text += " run max error pNN: percentiles of the runs' maximum tracking errors."
+    elif any("err_pos_p50" in s for s in summaries):
+        text += " run err pNN: percentiles of the runs' RMS position errors."
     base = _baseline(stats)
     if base is not None:
         text += (f" Δ: difference to {base} on the same runs with its paired interval; "
@@ -166,7 +182,8 @@ def csv_table(stats) -> str:
     cols = _columns(stats)
     keys = [k for k, _, _ in cols]
     hw_keys = [k for k in keys if any(k in f.get("half_width", {}) for f in stats["filters"].values())]
-    paired = [k for k in PAIRED if any(k in f.get("paired", {}) for f in stats["filters"].values())]
+    paired = list(dict.fromkeys(k for f in stats["filters"].values() for k in f.get("paired", {})
+                                if k not in ("baseline", "runs") and k in keys))
     intervals = any("intervals" in f for f in stats["filters"].values())
     buf = io.StringIO()
     w = csv.writer(buf)

@@ -17,7 +17,8 @@ the antenna by a fixed angle about its d axis at one instant (a large error
 the trackers must recover from).
 
 ``engage`` is one run (pure, ``vmap`` over keys); ``sums`` reduces a batch of
-runs to per-period sums for streaming statistics. Every random draw is made in
+runs to per-period sums for streaming statistics, ``run_samples`` to each run's
+time averages over the report windows (the samples behind the intervals). Every random draw is made in
 single precision and then cast, so a float32 run sees the very same target
 paths and noise as a float64 one.
 """
@@ -34,6 +35,9 @@ from tracklab.airborne.boresight import antenna_motion, los_frame, los_state, ro
 from tracklab.airborne.engagement import Engagement, singer_block
 from tracklab.airborne.tracker import Timing, Tracker
 from tracklab.linalg import mahalanobis2
+
+MRAD = 1e-3  # rad: the unit of the reported angles
+SAMPLE_QUANTITIES = ("pointing", "pointing_estimate", "los_rate", "range", "range_rate", "nees")
 
 
 class LoopConfig(NamedTuple):
@@ -123,19 +127,42 @@ def engage(eng: Engagement, tracker: Tracker, params, cfg: LoopConfig, sd0, key)
     return {"err": e, "nees": nees, "point": point, "range": r, "lost": lost}
 
 
+def _squares(runs_out):
+    """Per run and period, the squares of the reported errors (B, periods, 5): the true pointing
+    error and the pointing-error estimate's error (mrad²), the LOS-rate estimate's error
+    ((mrad/s)², both axes), the range's (m²) and the range rate's ((m/s)²)."""
+    e2 = runs_out["err"] ** 2
+    return jnp.stack([runs_out["point"] ** 2 / MRAD**2, (e2[..., 0] + e2[..., 3]) / MRAD**2,
+                      (e2[..., 1] + e2[..., 4]) / MRAD**2, e2[..., 6], e2[..., 7]], -1)
+
+
 def sums(runs_out, live):
-    """Per-period sums over the runs in lock (``live`` masks padding): the streaming statistics' inputs."""
+    """Per-period sums over the runs in lock (``live`` masks padding): the streaming statistics'
+    inputs; ``sum4`` the sums of the squares in ``_squares`` squared (the per-period RMS bands)."""
     keep = live & ~runs_out["lost"]
     w = keep[:, None].astype(runs_out["err"].dtype)
     e = jnp.where(keep[:, None, None], runs_out["err"], 0.0)
     nees = runs_out["nees"]
     finite = keep[:, None] & jnp.isfinite(nees)
+    sq = _squares(runs_out)
+    sq4 = sq[..., jnp.array([0, 2, 3, 4])] ** 2
     return {
         "n": jnp.sum(w, axis=0),
         "sum_e": jnp.sum(e, axis=0),
         "sum_e2": jnp.sum(e**2, axis=0),
         "sum_point2": jnp.sum(jnp.where(keep[:, None], runs_out["point"] ** 2, 0.0), axis=0),
+        "sum4": jnp.sum(jnp.where(keep[:, None, None], sq4, 0.0), axis=0),
         "sum_nees": jnp.sum(jnp.where(finite, nees, 0.0), axis=0),
         "n_nees": jnp.sum(finite, axis=0).astype(w.dtype),
         "lost": jnp.sum(live & runs_out["lost"]),
     }
+
+
+def run_samples(runs_out, live, weights):
+    """Each run's time averages over the report windows, the samples of the intervals:
+    ``weights`` (W, periods) each window's averaging weights. Returns ``values`` (W·6, B): per
+    window the mean squares of ``_squares`` and the mean NEES (``SAMPLE_QUANTITIES``); ``ok`` (B,)
+    the runs in lock; ``kept`` (W, B) each run's RMS true pointing error per window (mrad)."""
+    q = jnp.concatenate([_squares(runs_out), runs_out["nees"][..., None]], -1)  # (B, periods, 6)
+    values = jnp.einsum("wp,bpq->wqb", weights.astype(q.dtype), q)
+    return values.reshape(-1, values.shape[-1]), live & ~runs_out["lost"], jnp.sqrt(values[:, 0])

@@ -2,14 +2,16 @@
 
 A chunk of runs is every tracker's closed loop (``closed_loop.engage``: the
 estimate steers the antenna) over the same runs, reduced to per-period sums
-over the runs still in lock (``closed_loop.sums``). Run i draws from the
+over the runs still in lock (``closed_loop.sums``), and each run's averages over
+the report windows (``closed_loop.run_samples``), handed to the runner as
+``per_run`` for the intervals and paired comparisons. Run i draws from the
 runner's ``fold_in(key, i)`` whatever the tracker, so the trackers are compared
 on the same target paths, designation errors and noise.
 
 Numbers are the params' leaves: the engagement, the error signals' noise and
 gains, the gates, the designation errors, the jolt, the Singer perturbation's
 one-tick transition and noise factor (computed in float64 on the host), each
-tracker's parameters and prior. The structure is the timing (radar sample
+tracker's parameters and prior, the report windows' averaging weights. The structure is the timing (radar sample
 period, samples per filter period, the antenna's lag, which the classical
 tracker's compensator is discretised with), the number of filter periods, the
 jolt's tick, whether the Singer perturbation is on, the trackers' kinds and
@@ -23,10 +25,11 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import jax
+import jax.numpy as jnp
 
 from tracklab.airborne.cd_ekf import cd_ekf
 from tracklab.airborne.classical import classical
-from tracklab.airborne.closed_loop import LoopConfig, engage, sums
+from tracklab.airborne.closed_loop import LoopConfig, engage, run_samples, sums
 from tracklab.airborne.decoupled import decoupled
 from tracklab.airborne.moose import moose
 from tracklab.airborne.tracker import Timing
@@ -78,6 +81,7 @@ class AirborneParams(NamedTuple):
     singer_L: Any  # (3, 3)
     trackers: list  # each tracker's parameters (pytree)
     sd0: list  # each tracker's prior standard deviations (9,)
+    windows: Any  # (W, periods) each report window's averaging weights (the last: the whole run)
 
 
 def _chunk(structure: AirborneStructure):
@@ -87,12 +91,14 @@ def _chunk(structure: AirborneStructure):
         cfg = LoopConfig(structure.timing, structure.periods, params.k, params.sigma, tuple(params.limits),
                          params.acquisition, structure.jolt_tick, params.jolt, structure.singer, params.singer_phi,
                          params.singer_L)
-        out = {}
+        out, samples = {}, []
         for i, (spec, tracker) in enumerate(zip(structure.trackers, trackers)):
             p, sd0 = params.trackers[i], params.sd0[i]
             res = jax.vmap(lambda key: engage(params.engagement, tracker, p, cfg, sd0, key))(keys)
             out[spec.label] = sums(res, live & ~exclude[i])
-        return out
+            samples.append(run_samples(res, live & ~exclude[i], params.windows))
+        values, ok, kept = (jnp.stack(a) for a in zip(*samples))
+        return out | {"per_run": {"values": values, "ok": ok, "kept": kept}}
 
     return local
 

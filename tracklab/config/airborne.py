@@ -54,6 +54,10 @@ r_scale = 1.0
 # decoupled: range_velocity = "coupled" | "separate"; model: sigma_m, tau, sigma_r, tau_r
 # moose: levels = [-40.0, -20.0, 0.0, 20.0, 40.0] (m/s²), p_stay = 0.99 (per filter period: a 5 s mean sojourn)
 
+[report]                 # optional
+level = 0.95             # of every confidence interval
+baseline = "joint EKF"   # the tracker the paired differences are to (default the first)
+
 [report.windows]         # name = [t0, t1] s; defaults below when absent
 steady = [5.0, 20.0]
 ```
@@ -71,21 +75,20 @@ from pathlib import Path
 import numpy as np
 
 from tracklab.airborne.engagement import Engagement
-from tracklab.config.fields import MAX_RUN_STEPS, WINDOW_NAME_RE, Section, check_sections, experiment_header
+from tracklab.config.fields import (MAX_RUN_STEPS, WINDOW_NAME_RE, Section, check_sections, experiment_header,
+                                    level_and_baseline)
 from tracklab.errors import ConfigError
 from tracklab.experiments.airborne import MAX_TICKS, MRAD, TRACKER_KINDS, AirborneExperiment, TrackerConfig
 
 
-def _read_windows(f, raw_report, duration, disturbance):
+def _read_windows(f, rp: Section, duration, disturbance):
     defaults = {"acquisition": (0.0, 2.0), "steady": (5.0, 20.0), "turn": (20.0, 30.0),
                 "close": (max(duration - 4.0, 0.0), duration)}
     if disturbance is not None:
         defaults["disturbance"] = (disturbance[0], min(disturbance[0] + 2.0, duration))
-    if raw_report is None:
+    if not rp.has("windows"):
         return {k: v for k, v in defaults.items() if v[0] < duration}
-    if not isinstance(raw_report, dict) or set(raw_report) - {"windows"}:
-        raise ConfigError(f, "[report]", raw_report, "an airborne experiment's [report] holds only windows")
-    table = raw_report.get("windows", {})
+    table = rp.get("windows")
     if not isinstance(table, dict) or not table:
         raise ConfigError(f, "report.windows", table, "must be a table: name = [t0, t1] (seconds)")
     out = {}
@@ -207,7 +210,10 @@ def parse_airborne(f: Path, raw: dict) -> AirborneExperiment:
                 raise ConfigError(f, f"tracker[{i}].p_stay", p_stay, "must be in (0, 1)")
         ts.check_unknown()
         trackers.append(TrackerConfig(label, kind, lam, q_scale, r_scale, rv, model, levels, p_stay))
-    windows = _read_windows(f, raw.get("report"), duration, disturbance)
+    rp = Section(f, "report", raw.get("report", {}))
+    windows = _read_windows(f, rp, duration, disturbance)
+    level, baseline = level_and_baseline(rp, [t.label for t in trackers], "trackers")
+    rp.check_unknown()
     return AirborneExperiment(f, name, runs, seed, duration, sample_dt, average, lag, limits, eng, singer, noise,
                               tuple(float(g) for g in gains), acquisition, disturbance, trackers, windows, raw, precision,
-                              chunk=chunk)
+                              chunk=chunk, level=level, baseline=baseline)

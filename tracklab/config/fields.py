@@ -168,3 +168,16 @@ def experiment_header(f, raw, auto=False):
     precision = ex.string("precision", "float64", choices=("float64", "float32"))
     ex.string("description")
     return name, runs, seed, precision, ex
+
+
+def level_and_baseline(rp: Section, labels, what="filters"):
+    """[report] level (of every confidence interval, default 0.95) and baseline (the label the
+    paired differences are to; None: the first of ``labels``)."""
+    level = rp.number("level", 0.95)
+    if not 0.5 <= level < 1:
+        raise ConfigError(rp.file, "report.level", level, "must be a confidence level in [0.5, 1), e.g. 0.95")
+    baseline = rp.string("baseline")
+    if baseline is not None and baseline not in labels:
+        raise ConfigError(rp.file, "report.baseline", baseline,
+                          f"must be one of the {what}' labels: {', '.join(sorted(labels))}")
+    return level, baseline

@@ -31,20 +31,26 @@ q = 1.0                        # acceleration-increment variance per frame, (deg
 [[case]]
 mode = "on_axis"               # double_loop | velocity_lag | on_axis
 estimator = "KF"               # none for double_loop; "perfect" = the true target
+
+[report]                       # optional
+level = 0.95                   # of every confidence interval
+baseline = "on_axis, KF"       # the case the paired differences are to (default the first)
 ```
 
 Statistics per case over the runs, after ``settle``: the maximum tracking
 error (′; the mean over runs of each run's largest |target − boresight|, and
 the worst run), the random error (″; the RMS of the error left after a
 least-squares fit of the target's first three harmonics and a constant, per
-run, averaged over runs) and the estimator's largest rate error (°/s).
+run, averaged over runs) and the estimator's largest rate error (°/s), each
+with its confidence interval over the runs; percentiles of the runs' maximum
+tracking errors; each case's paired differences to the baseline case.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from tracklab.config.fields import MAX_RUN_STEPS, Section, check_sections, experiment_header
+from tracklab.config.fields import MAX_RUN_STEPS, Section, check_sections, experiment_header, level_and_baseline
 from tracklab.errors import ConfigError
 from tracklab.experiments.servo import (CAMERA_LOOPS, ESTIMATOR_KINDS, MAX_TICKS, TICK_RANGE, Case, EstimatorConfig,
                                         ServoExperiment)
@@ -66,7 +72,7 @@ def _check_latency(f, delay, frame_dt, mode):
 
 def parse_servo(f: Path, raw: dict) -> ServoExperiment:
     """Validate a servo experiment file's contents ``raw`` read from ``f``."""
-    check_sections(f, raw, ("experiment", "target", "case"), ("experiment", "servo", "target", "estimator", "case"),
+    check_sections(f, raw, ("experiment", "target", "case"), ("experiment", "servo", "target", "estimator", "case", "report"),
                    "a servo experiment")
     name, runs, seed, precision, ex = experiment_header(f, raw)
     chunk = ex.integer("chunk", None, lo=1, hi=100_000)
@@ -148,5 +154,8 @@ def parse_servo(f: Path, raw: dict) -> ServoExperiment:
     camera_loops = [c.mode for c in cases if c.mode in CAMERA_LOOPS]
     if camera_loops:
         _check_latency(f, delay, frame_dt, camera_loops[0])
+    rp = Section(f, "report", raw.get("report", {}))
+    level, baseline = level_and_baseline(rp, case_labels, "cases")
+    rp.check_unknown()
     return ServoExperiment(f, name, runs, seed, frames, frame_dt, frame_ticks, delay, noise, settle, accel_ff, target,
-                           estimators, cases, raw, precision=precision, chunk=chunk)
+                           estimators, cases, raw, precision=precision, chunk=chunk, level=level, baseline=baseline)

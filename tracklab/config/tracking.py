@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from tracklab.config.fields import (MAX_RUN_STEPS, MAX_RUNS, MAX_STEPS, NAME_RE, WINDOW_NAME_RE, Section,
-                                    auto_runs, check_sections, experiment_header)
+from tracklab.config.fields import (MAX_RUN_STEPS, MAX_RUNS, MAX_STEPS, NAME_RE, WINDOW_NAME_RE, Section, auto_runs,
+                                    check_sections, experiment_header, level_and_baseline)
 from tracklab.config import factories
 from tracklab.config.factories import is_factory
 from tracklab.config.studies import parse_studies
@@ -322,12 +322,7 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
     ):
         raise ConfigError(f, "report.window", w, f"must be [first, last] steps with 1 <= first <= last <= {steps}")
     pred_windows = _pred_windows(f, rp.get("windows", {}), (w[0], w[1]), steps, dt)
-    level = rp.number("level", 0.95)
-    if not 0.5 <= level < 1:
-        raise ConfigError(f, "report.level", level, "must be a confidence level in [0.5, 1), e.g. 0.95")
-    baseline = rp.string("baseline")
-    if baseline is not None and baseline not in labels:
-        raise ConfigError(f, "report.baseline", baseline, f"must be one of the filters' labels: {', '.join(sorted(labels))}")
+    level, baseline = level_and_baseline(rp, labels)
     rp.check_unknown()
     studies = parse_studies(f, raw.get("study"), filters)
 

@@ -12,6 +12,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
+from tracklab.airborne.closed_loop import MRAD, SAMPLE_QUANTITIES
 
 TRACKERS = {
     "cd_ekf": "joint continuous-discrete EKF on the 9-state boresight model, antenna command eq. 1",
@@ -20,7 +21,6 @@ TRACKERS = {
     "moose": "joint EKF with Markov-switching mean accelerations (Moose-type adaptive filter)",
 }
 TRACKER_KINDS = tuple(TRACKERS)
-MRAD = 1e-3
 MAX_TICKS = 10**7  # radar samples per run (sample_dt against duration)
 
 
@@ -61,6 +61,8 @@ class AirborneExperiment:
     also_runs: tuple = ()
     studies: list = field(default_factory=list)
     chunk: int | None = None  # runs per chunk; None: default_chunk()
+    level: float = 0.95  # of every confidence interval
+    baseline: str | None = None  # the tracker the paired differences are to (None: the first)
 
     @property
     def period(self) -> float:
@@ -109,7 +111,16 @@ class AirborneExperiment:
             sd0.append(s)
         return AirborneParams(self.engagement, np.asarray(self.gains, float), np.asarray(self.noise, float),
                               np.asarray(self.limits, float), np.asarray(self.acquisition, float),
-                              float(self.disturbance[1]) if self.disturbance is not None else 0.0, phi, L, trackers, sd0)
+                              float(self.disturbance[1]) if self.disturbance is not None else 0.0, phi, L, trackers, sd0,
+                              self.window_weights())
+
+    def window_weights(self):
+        """(W + 1, periods): each report window's averaging weights over the filter periods, then
+        the whole run's (a window holding no period: NaN, its statistics missing)."""
+        _, masks = self.window_masks()
+        rows = [m.astype(float) for m in masks.values()] + [np.ones(self.steps)]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.stack([r / r.sum() for r in rows])
 
     def tracker_params(self, tc: TrackerConfig, q_scale=None, r_scale=None, lam=None):
         """(parameters, prior standard deviations) of one [[tracker]] table (``q_scale``, ``r_scale``,
@@ -175,7 +186,8 @@ class AirborneExperiment:
         return params._replace(trackers=[scale(p) for p in params.trackers])
 
     def summarise(self, structure, params, sums, out, point=None) -> dict:
-        return self.document(sums, out.runs, out.wall_s, out.compile_s, self.precision)
+        samples = out.samples if point is None or out.samples is None else out.samples.point(point)
+        return self.document(sums, out.runs, out.wall_s, out.compile_s, self.precision, samples)
 
     # tuning (tracklab.tune): the [[tracker]] fields q_scale, r_scale and lam of the filtering trackers
     tune_names = ("q_scale", "r_scale", "lam")
@@ -213,13 +225,13 @@ class AirborneExperiment:
         return runs_per_step * self.ticks * len(self.trackers) * 200 * 8.0
 
     def monte_carlo(self, runs=None, seed=None, progress=None, precision=None, chunk=None):
-        """Per-period sums over runs for every tracker: ({label: sums}, wall seconds, compile seconds)."""
+        """The runner's outcome: per-period sums over runs for every tracker ({label: sums}) and the
+        runs' samples."""
         from tracklab.airborne.world import world
         from tracklab.montecarlo import runner
 
-        out = runner.run(world(self.structure(chunk)), self.params(), runs or self.runs,
-                         self.seed if seed is None else seed, precision=precision or self.precision, progress=progress)
-        return out.sums, out.wall_s, out.compile_s
+        return runner.run(world(self.structure(chunk)), self.params(), runs or self.runs,
+                          self.seed if seed is None else seed, precision=precision or self.precision, progress=progress)
 
     @property
     def ticks(self) -> int:
@@ -242,8 +254,8 @@ class AirborneExperiment:
         from tracklab.report import run_into_folder
 
         def simulate():
-            acc, wall, compile_s = self.monte_carlo(runs or self.runs, seed, progress, precision)
-            return self.document(acc, runs or self.runs, wall, compile_s, precision or self.precision)
+            out = self.monte_carlo(runs or self.runs, seed, progress, precision)
+            return self.document(out.sums, out.runs, out.wall_s, out.compile_s, precision or self.precision, out.samples)
 
         return run_into_folder(self, out, runs, max_memory, simulate,
                                lambda doc, tmp: write_airborne_results(doc, tmp, figures))
@@ -255,26 +267,35 @@ class AirborneExperiment:
             masks[name] = (t >= t0 - 1e-9) & (t <= t1 + 1e-9)
         return t, masks
 
-    def document(self, acc, runs, wall, compile_s, precision):
-        from tracklab.metrics import average_chi2_interval
+    def document(self, sums, runs, wall, compile_s, precision, samples=None):
+        """The statistics document of the per-period ``sums`` over ``runs`` runs; with the runs'
+        ``samples`` every summary number has its ``level`` interval, and each tracker its paired
+        differences to the baseline and its runs' pointing-error percentiles (``intervals``)."""
+        from tracklab.metrics import average_chi2_interval, rms_half_width
 
         t, masks = self.window_masks()
         steady = masks.get("steady")
         trackers = {}
         for tc in self.trackers:
-            s = acc[tc.label]
+            s = sums[tc.label]
             # runs still in lock at each period; none: every statistic is missing (NaN), never 0
             n = np.where(s["n"] > 0, s["n"], np.nan)
             ms = s["sum_e2"] / n[:, None]
+            mean_sq = {"pointing": s["sum_point2"] / n / MRAD**2, "los_rate": (ms[:, 1] + ms[:, 4]) / MRAD**2,
+                       "range": ms[:, 6], "range_rate": ms[:, 7]}
             series = {
-                "pointing": np.sqrt(s["sum_point2"] / n) / MRAD,  # mrad, the true boresight-to-LOS angle
+                "pointing": np.sqrt(mean_sq["pointing"]),  # mrad, the true boresight-to-LOS angle
                 "pointing_estimate": np.sqrt(ms[:, 0] + ms[:, 3]) / MRAD,
-                "los_rate": np.sqrt(ms[:, 1] + ms[:, 4]) / MRAD,  # mrad/s
+                "los_rate": np.sqrt(mean_sq["los_rate"]),  # mrad/s
                 "range": np.sqrt(ms[:, 6]),
                 "range_rate": np.sqrt(ms[:, 7]),
                 "range_bias": s["sum_e"][:, 6] / n,
                 "nees": np.where(s["n_nees"] > 0, s["sum_nees"] / np.maximum(s["n_nees"], 1.0), np.nan),
             }
+            if "sum4" in s:  # each period's RMS with its confidence band (delta method over the runs in lock)
+                for j, key in enumerate(("pointing", "los_rate", "range", "range_rate")):
+                    series[f"{key}_hw"] = rms_half_width(mean_sq[key], s["sum4"][:, j], s["n"], self.level)
+            series["nees_lo"], series["nees_hi"] = average_chi2_interval(9, s["n_nees"], self.level)
             summary = {"runs": int(runs), "diverged": int(s["lost"]), "lost_lock": int(s["lost"])}
             summary["healthy_runs"] = int(np.min(s["n"]))
             for name, m in masks.items():
@@ -294,12 +315,39 @@ class AirborneExperiment:
                 for name, t_e in events:
                     summary[f"settle[{name}]"] = settling_time(t, series["los_rate"], t_e, 1.5 * level)
             trackers[tc.label] = {"kind": tc.kind, "label": tc.label, "summary": summary, "series": series}
+        if samples is not None:
+            self._with_intervals(trackers, samples, runs)
         return {
             "name": self.name, "runs": runs, "steps": self.steps, "dt": self.period, "window": [1, self.steps],
             "series_stride": 1, "units": ["mrad", "mrad/s"], "axes": ["e", "d"], "windows": list(self.windows),
-            "wall_s": wall, "compile_s": compile_s, "precision": precision, "experiment": self.raw,
-            "t": t, "nominal_range": self.nominal_range(), "filters": trackers,
+            "level": self.level, "wall_s": wall, "compile_s": compile_s, "precision": precision,
+            "experiment": self.raw, "t": t, "nominal_range": self.nominal_range(), "filters": trackers,
         }
+
+    def _with_intervals(self, trackers, samples, runs):
+        """Each tracker's window summaries from its runs' samples (``closed_loop.run_samples``) with
+        their intervals, the Wilson interval of its lost-lock fraction, the percentiles and
+        distribution of its runs' RMS true pointing error per window, its paired differences."""
+        from tracklab.metrics import lane_intervals
+
+        whole = {"pointing": "rmse_pos", "los_rate": "rmse_vel", "nees": "nees"}  # the whole run's keys
+        names = list(self.windows)
+        stats, kept = {}, []
+        for wi, w in enumerate(names + [None]):
+            for qi, q in enumerate(SAMPLE_QUANTITIES):
+                key = f"{q}[{w}]" if w is not None else whole.get(q)
+                if key is not None:
+                    i = wi * len(SAMPLE_QUANTITIES) + qi
+                    stats[key] = ("mean", i) if q == "nees" else ("root", [i])
+            kept.append((wi, f"pointing_p{{p}}[{w}]" if w is not None else "pointing_p{p}",
+                         f"pointing[{w}]" if w is not None else "pointing"))
+        paired = [k for k in stats if k.startswith(("pointing[", "los_rate["))] + ["rmse_pos", "rmse_vel", "nees"]
+        diverged = {l: (f["summary"]["lost_lock"], runs) for l, f in trackers.items()}
+        lanes = lane_intervals(samples, list(trackers), stats, self.level, self.baseline, paired, diverged, kept)
+        for label, lane in lanes.items():
+            f = trackers[label]
+            f["summary"].update(lane.pop("summary"))
+            f.update(lane)
 
 
 def settling_time(t, series, t_event, level, hold=1.0):
@@ -324,70 +372,65 @@ SUMMARY_TABLES = [  # (key, title, format)
     ("range_rate", "range-rate error RMS (m/s)", "{:.3f}"),
     ("nees", "NEES (9 states; 95 % band about 9)", "{:.2f}"),
 ]
+PAIRED_TABLES = [("pointing", "true pointing error RMS", "mrad"), ("los_rate", "LOS-rate error RMS", "mrad/s")]
+
+
+def _table(title, header, rows) -> list[str]:
+    from tracklab.report import md_cell
+
+    return [f"\n## {title}\n", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)] + \
+        ["| " + " | ".join(md_cell(c) for c in r) + " |" for r in rows]
 
 
 def airborne_tables(doc) -> str:
-    """Markdown: one table per quantity, a column per window; then settling times and lost lock."""
-    from tracklab.report import _fmt, md_cell
+    """Markdown: one table per quantity, a column per window, each number ± the half-width of its
+    interval; the paired differences to the baseline tracker; the percentiles of the runs' pointing
+    errors; settling times and lost lock (with the Wilson interval of its fraction)."""
+    from tracklab.intervals import with_half_width
+    from tracklab.report import _diverged_cell, _fmt, _paired_cell
 
     windows = doc["windows"]
-    out = [f"# {doc['name']}: {doc['runs']} runs, {doc['steps']} filter periods of {doc['dt'] * 1e3:.0f} ms\n"]
+    filters = doc["filters"]
+    out = [f"# {doc['name']}: {doc['runs']} runs, {doc['steps']} filter periods of {doc['dt'] * 1e3:.0f} ms"]
     for key, title, spec in SUMMARY_TABLES:
-        out.append(f"\n## {title}\n\n| tracker | kind | " + " | ".join(windows) + " |\n|---|---|" + "---|" * len(windows))
-        for label, f in doc["filters"].items():
-            cells = [_fmt(f["summary"].get(f"{key}[{w}]"), spec) for w in windows]
-            out.append(f"| {md_cell(label)} | {f['kind']} | " + " | ".join(cells) + " |")
-    events = sorted({k[7:-1] for f in doc["filters"].values() for k in f["summary"] if k.startswith("settle[")})
+        rows = [[label, f["kind"]] + [with_half_width(f["summary"].get(f"{key}[{w}]"),
+                                                      f.get("half_width", {}).get(f"{key}[{w}]"), spec) for w in windows]
+                for label, f in filters.items()]
+        out += _table(title, ["tracker", "kind", *windows], rows)
+    base = next((f["paired"]["baseline"] for f in filters.values() if "paired" in f), None)
+    if base is not None:
+        for key, title, unit in PAIRED_TABLES:
+            rows = [[label] + [_paired_cell(dict(f, label=label), f"{key}[{w}]") for w in windows]
+                    for label, f in filters.items()]
+            out += _table(f"{title}: difference to {base} on the same runs ({unit})", ["tracker", *windows], rows)
+    if any("pointing_p50" in f["summary"] for f in filters.values()):
+        rows = [[label] + [" / ".join(_fmt(f["summary"].get(f"pointing_p{p}[{w}]"), "{:.3f}") for p in (50, 90, 99))
+                           for w in windows] for label, f in filters.items()]
+        out += _table("per-run true pointing error RMS, 50th / 90th / 99th percentile over the runs in lock (mrad)",
+                      ["tracker", *windows], rows)
+    events = sorted({k[7:-1] for f in filters.values() for k in f["summary"] if k.startswith("settle[")})
     titles = ["tracker", *(f"settle after {e} (s)" for e in events), "lost lock (runs)"]
-    out.append("\n## Settling and lock\n\n"
-               + ("Settling: seconds until the LOS-rate error RMS stays within 1.5× its steady-window value for 1 s.\n\n"
-                  if events else "")
-               + "| " + " | ".join(titles) + " |\n|" + "---|" * len(titles))
-    for label, f in doc["filters"].items():
-        cells = [md_cell(label), *(_fmt(f["summary"].get(f"settle[{e}]"), "{:.2f}") for e in events),
-                 str(f["summary"]["lost_lock"])]
-        out.append("| " + " | ".join(cells) + " |")
-    return "\n".join(out) + "\n"
+    rows = [[label, *(_fmt(f["summary"].get(f"settle[{e}]"), "{:.2f}") for e in events), _diverged_cell(f, "lost_lock")]
+            for label, f in filters.items()]
+    out += _table("Settling and lock", titles, rows)
+    notes = ["Settling: seconds until the LOS-rate error RMS stays within 1.5× its steady-window value for 1 s "
+             "(from the mean curve; no interval)."] if events else []
+    if any("half_width" in f for f in filters.values()):
+        level = doc.get("level", 0.95)
+        notes.append(f"± : half-width of the {level:.0%} confidence interval over the runs in lock (Student t over "
+                     "the runs' window averages; delta method for an RMS). Differences: on the same runs, with "
+                     f"their paired interval; (n.s.): not significant at {level:.0%}. Lost lock: runs, with the "
+                     "Wilson interval of their fraction.")
+    return "\n".join(out) + "\n" + "".join(f"\n{n}\n" for n in notes)
 
 
 def write_airborne_results(doc, folder: Path, figures=True):
     """The tables and (``figures``) the figures of an airborne statistics document; returns it."""
-    from tracklab.figures import pyplot
     from tracklab.report import write_tables
 
     write_tables(folder, doc, airborne_tables(doc))
-    if not figures:
-        return doc
-    plt = pyplot()
+    if figures:
+        from tracklab.figures import plot_airborne
 
-    t, rng = np.asarray(doc["t"]), np.asarray(doc["nominal_range"]) / 1e3
-    panels = [
-        ("pointing_error.png", [("pointing", "true pointing error RMS (mrad)")], "paper 001 Fig. 3"),
-        ("rate_error.png", [("los_rate", "LOS-rate error RMS (mrad/s)"), ("range_rate", "range-rate error RMS (m/s)")],
-         "paper 001 Fig. 4"),
-        ("range_error.png", [("range", "range error RMS (m)"), ("range_rate", "range-rate error RMS (m/s)")],
-         "paper 001 Fig. 6"),
-    ]
-    for name, rows, ref in panels:
-        fig, axes = plt.subplots(len(rows), 1, figsize=(9, 3.2 * len(rows)), squeeze=False, sharex=True)
-        for ax, (key, ylabel) in zip(axes[:, 0], rows):
-            for label, f in doc["filters"].items():
-                v = np.array([np.nan if x is None else x for x in f["series"][key]], float)
-                if np.isfinite(v).any():
-                    ax.plot(t, v, lw=0.9, label=label)
-                else:  # no run in lock: nothing to draw, said in the legend
-                    ax.plot([], [], " ", label=f"{label}: lost lock in every run")
-            ax.set_ylabel(ylabel)
-            ax.set_yscale("log")
-            ax.grid(True, which="both", alpha=0.3)
-        top = axes[0, 0].secondary_xaxis("top", functions=(lambda x: np.interp(x, t, rng), lambda r: np.interp(r, rng[::-1], t[::-1])))
-        ticks = [r for r in (20, 15, 10, 7, 5, 4, 3, 2) if rng.min() <= r <= rng.max()]
-        top.set_xticks(ticks)
-        top.set_xlabel("nominal range (km)")
-        axes[-1, 0].set_xlabel("time (s)")
-        axes[0, 0].legend(fontsize=7)
-        axes[0, 0].set_title(f"{doc['name']}: {doc['runs']} runs ({ref})", fontsize=9)
-        fig.tight_layout()
-        fig.savefig(folder / name, dpi=110)
-        plt.close(fig)
+        plot_airborne(doc, folder)
     return doc

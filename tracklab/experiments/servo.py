@@ -66,6 +66,8 @@ class ServoExperiment:
     studies: list = field(default_factory=list)
     precision: str = "float64"
     chunk: int | None = None  # runs per chunk; None: default_chunk()
+    level: float = 0.95  # of every confidence interval
+    baseline: str | None = None  # the case the paired differences are to (None: the first)
 
     @property
     def steps(self) -> int:
@@ -220,13 +222,34 @@ class ServoExperiment:
         return params._replace(estimators=[scale(p) for p in params.estimators])
 
     def summarise(self, structure, params, sums, out, point=None) -> dict:
+        """The cases' statistics from their sums over the runs (``point``: which grid point of the
+        runner's ``out``); with the runs' samples, each with its ``level`` interval, the percentiles
+        of the runs' maximum tracking errors and the paired differences to the baseline case."""
         cases = {}
         for case in structure.cases:
             s = {k: v for k, v in sums[case.label].items() if not k.startswith("example")}
             cases[case.label] = {"kind": case.mode, "label": case.label, "estimator": self._case(case.label).estimator,
                                  "summary": case_summary(s, out.runs, case.estimator not in (None, "perfect")),
                                  "series": {}}
-        return {"filters": cases}
+        samples = out.samples if point is None or out.samples is None else out.samples.point(point)
+        if samples is not None:
+            self._with_intervals(structure, cases, samples, out.runs)
+        return {"filters": cases, "level": self.level}
+
+    def _with_intervals(self, structure, cases, samples, runs):
+        from tracklab.metrics import lane_intervals
+        from tracklab.servo.world import SAMPLES
+
+        stats = {key: ("mean", i) for i, key in enumerate(SAMPLES)}
+        diverged = {l: (c["summary"]["diverged"], runs) for l, c in cases.items()}
+        lanes = lane_intervals(samples, list(cases), stats, self.level, self.baseline, ("max_track_err", "random_err"),
+                               diverged, kept=[(0, "max_track_err_p{p}", "max_track_err")])
+        for case in structure.cases:
+            lane = lanes[case.label]
+            if case.estimator in (None, "perfect"):  # no rate estimate: its statistic stays missing
+                lane["summary"]["max_rate_err"] = lane["half_width"]["max_rate_err"] = float("nan")
+            cases[case.label]["summary"].update(lane.pop("summary"))
+            cases[case.label].update(lane)
 
     # tuning (tracklab.tune): each estimator's q, against the case(s) it feeds
     tune_names = ("q",)
@@ -285,7 +308,7 @@ class ServoExperiment:
         stride = max(1, n_ticks // 3000)
         return {
             "name": self.name, "runs": runs, "steps": self.frames, "dt": self.frame_dt, "series_stride": 1,
-            "window": [1, self.frames], "wall_s": out.wall_s, "compile_s": out.compile_s, "experiment": self.raw,
+            "window": [1, self.frames], "level": self.level, "wall_s": out.wall_s, "compile_s": out.compile_s, "experiment": self.raw,
             "units": ["deg", "deg/s"], "axes": ["az"],
             "training": training,
             "filters": cases,
@@ -335,39 +358,11 @@ def case_summary(sums: dict, runs: int, estimated: bool) -> dict:
 
 def write_servo_results(doc, folder: Path, figures=True):
     """The tables and (``figures``) the figures of a servo statistics document; returns it."""
-    from tracklab.figures import pyplot
     from tracklab.report import write_tables
 
     write_tables(folder, doc)
-    if not figures:
-        return doc
-    plt = pyplot()
+    if figures:
+        from tracklab.figures import plot_servo
 
-    ex = doc["example_run"]
-    t = np.asarray(ex["t"])
-    fig, ax = plt.subplots(figsize=(9, 4))
-    for label, e in ex["error"].items():
-        ax.plot(t, 60.0 * np.asarray(e), lw=0.8, label=label)
-    ax.set_xlabel("time (s)")
-    ax.set_ylabel("tracking error (′)")
-    ax.set_title(f"{doc['name']} — run 0 (paper 003 Figs. 5–7)")
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(folder / "tracking_error.png", dpi=110)
-    plt.close(fig)
-    if ex["rate_error"]:
-        fig, ax = plt.subplots(figsize=(9, 3.5))
-        tf = np.asarray(ex["t_frames"])
-        for label, e in ex["rate_error"].items():
-            ax.plot(tf, np.asarray(e), lw=0.8, label=label)
-        ax.set_xlabel("time (s)")
-        ax.set_ylabel("rate-estimate error (°/s)")
-        ax.set_title(f"{doc['name']} — run 0 (paper 003 Fig. 4)")
-        ax.set_ylim(-1, 1)
-        ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=7)
-        fig.tight_layout()
-        fig.savefig(folder / "rate_error.png", dpi=110)
-        plt.close(fig)
+        plot_servo(doc, folder)
     return doc

@@ -5,7 +5,9 @@ prediction steers the mount) over the same runs — run i's miss-distance noise
 comes from the runner's ``fold_in(key, i)`` whatever the case — reduced to sums
 over the runs: per case the number of healthy runs, the sums and the largest
 of each run's statistics after ``settle`` (maximum tracking error, random error,
-the estimator's largest rate error), and run 0's error series for the figures.
+the estimator's largest rate error), and run 0's error series for the figures;
+and each run's statistics themselves as the runner's ``per_run`` samples (in the
+tables' units: ′, ″, °/s), behind the intervals and paired comparisons.
 
 A run is diverged (counted, not averaged) when a statistic is not finite or its
 tracking error passes ``LOST`` (half a turn: the target is lost).
@@ -109,13 +111,26 @@ class ServoParams(NamedTuple):
     pinv: Any  # (7, ticks) its pseudo-inverse
 
 
+SAMPLES = ("max_track_err", "random_err", "max_rate_err")  # per run: ′, ″, °/s
+
+
+def healthy(max_err, random_err, rate_err=None):
+    """The runs that count: every statistic finite, the tracking error within ``LOST``."""
+    ok = jnp.isfinite(max_err) & jnp.isfinite(random_err) & (max_err <= LOST)
+    return ok & jnp.isfinite(rate_err) if rate_err is not None else ok
+
+
+def run_samples(max_err, random_err, rate_err=None):
+    """Each run's statistics in the tables' units (``SAMPLES``; the rate error 0 without an estimator)."""
+    rate = rate_err if rate_err is not None else jnp.zeros_like(max_err)
+    return 60.0 * max_err, 3600.0 * random_err, rate
+
+
 def case_sums(max_err, random_err, rate_err, live, track_ms=None, rate_ms=None):
     """One case's sums over runs from each run's statistics (deg, deg, deg/s; ``rate_err`` None
     without an estimator): healthy runs counted and summed (their largest maximum kept), the
     others counted as diverged: a non-finite statistic, or an error past ``LOST``."""
-    ok = jnp.isfinite(max_err) & jnp.isfinite(random_err) & (max_err <= LOST)
-    if rate_err is not None:
-        ok &= jnp.isfinite(rate_err)
+    ok = healthy(max_err, random_err, rate_err)
     use = live & ok
     dtype = jnp.result_type(max_err)
     return {
@@ -161,14 +176,17 @@ def _chunk(structure: ServoStructure):
     def local(params: ServoParams, keys, live, exclude):
         # built while the program is traced, in its precision (their constants are float64 in a float64 run)
         estimators = [_estimator(c, structure.frame_dt) for c in structure.cases]
-        out = {}
+        out, values, oks = {}, [], []
         for i, (case, est) in enumerate(zip(structure.cases, estimators)):
             mx, rnd, rate, track_ms, rate_ms, err, rate_err = jax.vmap(
                 lambda k: one(params, case, est, params.estimators[i], k))(keys)
-            out[case.label] = case_sums(mx, rnd, rate if est is not None else None, live & ~exclude[i],
-                                        track_ms, rate_ms)
+            rate = rate if est is not None else None
+            out[case.label] = case_sums(mx, rnd, rate, live & ~exclude[i], track_ms, rate_ms)
             out[case.label] |= {"example_error": err[0], "example_rate_error": rate_err[0]}
-        return out
+            values.append(jnp.stack(run_samples(mx, rnd, rate)))
+            oks.append(healthy(mx, rnd, rate) & live & ~exclude[i])
+        values = jnp.stack(values)
+        return out | {"per_run": {"values": values, "ok": jnp.stack(oks), "kept": values[:, :1]}}
 
     return local
 
