@@ -8,6 +8,7 @@ from pathlib import Path
 
 from tracklab.errors import ConfigError
 from tracklab.output import raise_if_interrupted
+from tracklab.runtime import writes
 
 
 def _positive_int(s):
@@ -70,12 +71,14 @@ def cmd_run(args) -> int:
 
     def progress(done, total):
         raise_if_interrupted()  # after each chunk: a Ctrl-C swallowed inside a callback still stops the run
-        if sys.stderr.isatty() or done == total:
+        if writes() and (sys.stderr.isatty() or done == total):
             print(f"\r{exp.name}: {done}/{total} runs", end="\n" if done == total else "", file=sys.stderr, flush=True)
 
     extra = {"target_precision": target} if target is not None else {}
     doc = exp.run(runs=runs, seed=args.seed, out=out, progress=progress, figures=not args.no_figures,
                   precision="float32" if args.float32 else None, max_memory=args.max_memory, **extra)
+    if doc is None:  # a process other than 0 of a multi-process run: process 0 writes and prints
+        return 0
     print(f"# {exp.name}: {doc['runs']} runs x {exp.steps} steps, window {exp.window[0]}-{exp.window[1]}, "
           f"{doc['wall_s']:.1f} s wall, {doc['compile_s']:.1f} s of it compiling or loading the program")
     print(markdown_table(doc), end="")
@@ -154,7 +157,7 @@ def cmd_tune(args) -> int:
 
     run_tune(exp, names, steps=args.steps, lr=args.lr, loss=args.loss, runs_per_step=args.runs_per_step,
              labels=labels, out_toml=out, folder=folder,
-             log=lambda line: (raise_if_interrupted(), print(line, flush=True)), every=args.every)
+             log=lambda line: (raise_if_interrupted(), writes() and print(line, flush=True)), every=args.every)
     return 0
 
 
@@ -178,10 +181,12 @@ def cmd_sweep(args) -> int:
 
     def progress(done, total):
         raise_if_interrupted()
-        if sys.stderr.isatty() or done == total:
+        if writes() and (sys.stderr.isatty() or done == total):
             print(f"\r{exp.name} sweep: {done}/{total} runs (all grid points)", end="\n" if done == total else "", file=sys.stderr, flush=True)
 
     doc = sweep(exp, axes, runs=args.runs, progress=progress, max_memory=args.max_memory)  # checks grid and memory first
+    if not writes():  # process 0 of a multi-process run writes and prints
+        return 0
     n = grid_points(axes)
     print(f"# {exp.name}: {n} grid points x {doc['runs']} runs, {doc['wall_s']:.1f} s wall, "
           f"{doc['compile_s']:.1f} s of it compiling or loading the program")
@@ -228,7 +233,12 @@ def build_parser():
     p = _Parser(prog="tracklab", description="Monte-Carlo evaluation of tracking filters; filter kinds: "
                 + ", ".join(KINDS) + " (tracklab list describes them)")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
-    r = sub.add_parser("run", help="run an experiment file and write its results folder")
+    many = _Parser(add_help=False)  # several processes (jax.distributed): run, sweep and tune
+    g = many.add_argument_group("several processes (one per host or GPU; README: Several processes)")
+    g.add_argument("--coordinator", metavar="HOST:PORT", help="process 0's address (or TRACKLAB_COORDINATOR)")
+    g.add_argument("--processes", type=_positive_int, metavar="N", help="process count (or TRACKLAB_PROCESSES)")
+    g.add_argument("--process-id", type=int, metavar="I", help="this process, 0 … N-1 (or TRACKLAB_PROCESS_ID)")
+    r = sub.add_parser("run", help="run an experiment file and write its results folder", parents=[many])
     r.add_argument("experiment")
     r.add_argument("--runs", type=_positive_int, help="Monte-Carlo runs (default: the file's)")
     r.add_argument("--seed", type=_seed, help="random seed (default: the file's)")
@@ -240,7 +250,8 @@ def build_parser():
                         "--runs is then the most it may take)")
     r.add_argument("--max-memory", type=_size, help="refuse an experiment needing more (e.g. 8G; default: this machine's memory)")
     r.set_defaults(func=cmd_run)
-    tu = sub.add_parser("tune", help="tune filter parameters by gradient descent through the Monte-Carlo runs")
+    tu = sub.add_parser("tune", help="tune filter parameters by gradient descent through the Monte-Carlo runs",
+                        parents=[many])
     tu.add_argument("experiment")
     tu.add_argument("--params", required=True, help=f"comma-separated: {', '.join(TUNABLE)}")
     tu.add_argument("--steps", type=_positive_int, default=200)
@@ -256,7 +267,7 @@ def build_parser():
     tu.add_argument("--max-memory", type=_size, help="refuse a tuning needing more (default: this machine's memory)")
     tu.set_defaults(func=cmd_tune)
     sw = sub.add_parser("sweep", help="evaluate every filter on a grid of values of any numbers of the file, or of "
-                                      "filter-parameter scale factors")
+                                      "filter-parameter scale factors", parents=[many])
     sw.add_argument("experiment")
     sw.add_argument("--grid", action="append", required=True, help="PATH=LO:HI:N (evenly spaced) or PATH=LO:HI:N:log values of a number of the file (sensor.sigma_r, "
                          "scenario.speed, filter[EKF].accel_sigma, tracker[joint EKF].q_scale); or NAME=LO:HI:N, "
@@ -324,6 +335,14 @@ def main(argv=None) -> int:
 
     args = build_parser().parse_args(argv)
     configure()  # one CPU device per core, single-threaded Eigen, 64-bit mode (before JAX starts)
+    if hasattr(args, "processes"):
+        from tracklab.runtime import start_processes
+
+        try:
+            start_processes(args.coordinator, args.processes, args.process_id)
+        except ValueError as e:
+            print(f"error: tracklab {args.command}: {e}", file=sys.stderr)
+            return 2
     _compilation_cache()
     catch_interrupts()
     try:

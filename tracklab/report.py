@@ -279,13 +279,18 @@ def results_path(exp, out=None) -> Path:
 def run_into_folder(exp, out, runs, max_memory, simulate, write):
     """What ``run`` is for every kind of experiment: the output folder and the memory need checked
     before anything compiles, then ``simulate()``, then ``write(its result, folder)`` into a
-    temporary folder swapped in whole; returns what ``write`` returns (the statistics)."""
+    temporary folder swapped in whole; returns what ``write`` returns (the statistics). In a run of
+    several processes every one checks and simulates, and process 0 alone writes (the others
+    return None)."""
     from tracklab.output import atomic_folder, check_results_folder
+    from tracklab.runtime import writes
 
     file = exp.path if exp.path is not None else "tracklab.experiment"  # what a refusal names
     out = check_results_folder(results_path(exp, out), file)
     exp.check_memory(runs, max_memory)
     result = simulate()
+    if not writes():
+        return None
     with atomic_folder(out, file) as tmp:
         return write(result, tmp)
 

@@ -41,8 +41,10 @@ def check_tune(exp, names, labels, out_toml, runs_per_step=None, max_memory=None
 def run_tune(exp, names, *, steps, lr, loss, runs_per_step, labels, out_toml: Path, folder: Path, log=print, every=10,
              eval_runs=None):
     """Tune, log progress lines, write the results folder (``tune_report``) and the tuned
-    experiment file, each atomically; return the TuneResult."""
+    experiment file, each atomically (process 0 alone, in a run of several); return the TuneResult."""
     import sys
+
+    from tracklab.runtime import writes
 
     from tracklab.config import load_experiment
     from tracklab.config.writing import dump_toml
@@ -78,6 +80,8 @@ def run_tune(exp, names, *, steps, lr, loss, runs_per_step, labels, out_toml: Pa
         say(f"{lane}: held-out {loss} ({res.eval_runs} runs) {number(before)} -> "
             f"{number(res.eval_tuned.get(lane, math.nan))}")
     say(f"tuned in {res.wall_s:.1f} s ({len(res.history)} steps of {res.runs_per_step} runs)")
+    if not writes():  # process 0 of a run of several processes writes
+        return res
     text = TUNED_HEADER + "\n" + dump_toml(tuned_document(exp, res, out_toml))
 
     def verify(tmp):  # the file must be one `tracklab run` accepts, before it replaces anything

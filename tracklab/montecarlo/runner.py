@@ -30,6 +30,12 @@ chunk of runs, ``chunk(params, keys, live, exclude) -> sums``, plus a hashable
   excluded from the start (a run drops out of the sums only from the step it
   turns bad otherwise).
 
+Several processes (``runtime.start_processes``: one per host or per GPU) share
+every chunk: process p runs its slice of the chunk's runs on its own devices, and
+the processes' combined parts are gathered once per chunk (one collective) and
+combined by the same rules, so every process holds the same sums and a run's
+numbers do not depend on the process count.
+
 Sums are added on the host in float64, chunk by chunk: memory grows with
 chunk × steps, never with runs × steps. ``compile_s`` is the time spent
 tracing, lowering and compiling the program (or loading it from the persistent
@@ -119,11 +125,11 @@ def run_keys(key, idx):
     return jax.vmap(lambda i: jax.random.fold_in(key, i))(idx)
 
 
-def per_device(world: World) -> Callable:
-    """``(params, key, idx, live, exclude) -> parts``: each device runs its share of the runs
-    ``idx`` and keeps its own sums (every leaf gains a leading device axis). Nothing passes
-    between the devices, so no device ever waits for another inside the program."""
-    devices = jax.devices()
+def per_device(world: World, devices=None) -> Callable:
+    """``(params, key, idx, live, exclude) -> parts``: each of ``devices`` (default: this process's)
+    runs its share of the runs ``idx`` and keeps its own sums (every leaf gains a leading device
+    axis). Nothing passes between the devices, so no device ever waits for another inside the program."""
+    devices = jax.local_devices() if devices is None else devices
     n_dev = len(devices)
 
     def local(params, key, idx, live, exclude):
@@ -152,8 +158,10 @@ def per_device(world: World) -> Callable:
 def sharded(world: World) -> Callable:
     """``(params, key, idx, live, exclude) -> sums`` of the runs ``idx``: traceable (jit, grad,
     vmap over params), the devices' parts combined inside the function (tuning differentiates
-    through the combined sums)."""
-    parts = per_device(world)
+    through the combined sums). The runs are split over every process's devices: in a run of
+    several processes, each runs its share and the combined sums (and so the gradients) are
+    the same in all of them."""
+    parts = per_device(world, jax.devices())
 
     def combined(params, key, idx, live, exclude):
         return combine_devices(parts(params, key, idx, live, exclude), idx.shape[0], jnp)
@@ -177,17 +185,24 @@ _KEEP = 32
 compiles = 0  # programs compiled (or loaded from the persistent cache) by this process
 
 
+def share(world: World) -> int:
+    """Runs of every chunk this process runs: the chunk split evenly over the processes (a
+    chunk then holds ``share × processes`` runs, the last ones dead)."""
+    return -(-world.chunk_size // jax.process_count())
+
+
 def program(world: World, params, precision: str = "float64", points: int | None = None):
     """The compiled chunk program of ``world`` for params shaped like ``params`` (in ``precision``):
     (callable, seconds spent tracing, lowering and compiling; 0 if this process already held it).
+    It runs this process's ``share`` of a chunk on its own devices.
 
     ``points``: the params hold that many parameter sets along a leading axis (a sweep's grid
     points), evaluated on the same runs (common random numbers) by one program."""
     global compiles
-    B = world.chunk_size
+    B = share(world)
     leaves, treedef = jax.tree_util.tree_flatten(params)
     shapes = tuple((np.shape(a), jnp.result_type(a).name) for a in leaves)
-    key = (world.structure, treedef, shapes, B, precision, points, tuple(str(d) for d in jax.devices()))
+    key = (world.structure, treedef, shapes, B, precision, points, tuple(str(d) for d in jax.local_devices()))
     if key in _PROGRAMS:
         _PROGRAMS.move_to_end(key)
         return _PROGRAMS[key], 0.0
@@ -241,6 +256,24 @@ class Accumulator:
         self.total = jax.tree_util.tree_map_with_path(leaf, self.total, sums)
 
 
+def gather_processes(tree):
+    """Every process's ``tree`` (numpy leaves, the same structure and shapes everywhere), stacked
+    along a new leading process axis: one collective for the whole tree, exact for any dtype
+    (the leaves travel as float64, which holds every float32, int32 and bool value)."""
+    from jax.experimental import multihost_utils
+
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    leaves = [np.asarray(v) for v in leaves]
+    flat = np.concatenate([v.astype(np.float64).ravel() for v in leaves]) if leaves else np.zeros(0)
+    with jax.enable_x64(True):
+        every = np.asarray(multihost_utils.process_allgather(flat))  # (processes, size)
+    out, i = [], 0
+    for v in leaves:
+        out.append(every[:, i:i + v.size].reshape((every.shape[0],) + v.shape).astype(v.dtype))
+        i += v.size
+    return jax.tree_util.tree_unflatten(treedef, out)
+
+
 def pick(tree, j):
     """Parameter set (or its sums) ``j`` of a tree stacked along a leading axis (``points``)."""
     return jax.tree_util.tree_map(lambda a: np.asarray(a)[j], tree)
@@ -271,9 +304,10 @@ def run(world: World, params, runs: int, key, *, precision: str = "float64", poi
             key = jax.random.key(int(key))
         params = in_precision(params, precision)
         fn, compile_s = program(world, params, precision, points)
-        B = world.chunk_size
+        B = share(world)  # this process's runs of every chunk
+        n_proc, me = jax.process_count(), jax.process_index()
         acc = Accumulator()
-        n_chunks = -(-runs // B)
+        n_chunks = -(-runs // (B * n_proc))
         lead = 1 if points is not None else 0
 
         def combined(parts):  # the devices' parts of one chunk, combined on the host
@@ -282,16 +316,18 @@ def run(world: World, params, runs: int, key, *, precision: str = "float64", poi
 
         no_exclusion = jnp.zeros(((points,) if points is not None else ()) + (world.lanes, B), bool)
         for c in range(n_chunks):
-            idx = np.arange(c * B, (c + 1) * B, dtype=np.uint32)
+            idx = np.arange((c * n_proc + me) * B, (c * n_proc + me + 1) * B, dtype=np.uint32)
             args = (params, key, jnp.asarray(idx), jnp.asarray(idx < runs))
             sums, flags = pop_diverged(combined(fn(*args, no_exclusion)))
             if flags is not None and flags.any():  # the chunk again, those runs left out from their first step
                 sums, _ = pop_diverged(combined(fn(*args, jnp.asarray(flags))))
+            if n_proc > 1:  # every process's part of the chunk, in run order
+                sums = combine_devices(gather_processes(sums), B * n_proc)
             acc.add(sums)
-            done = min((c + 1) * B, runs)
+            done = min((c + 1) * B * n_proc, runs)
             if progress:
                 progress(done, runs)
             if enough is not None and done < runs and enough(acc.total, acc.samples, done):
                 runs, n_chunks = done, c + 1
                 break
-    return Outcome(acc.total, runs, B, time.perf_counter() - t_start, compile_s, n_chunks, acc.samples)
+    return Outcome(acc.total, runs, B * n_proc, time.perf_counter() - t_start, compile_s, n_chunks, acc.samples)
