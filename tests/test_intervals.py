@@ -7,10 +7,9 @@ import pytest
 
 import tracklab
 from tracklab.config import load_experiment
-from tracklab.intervals import t_quantile, wilson
+from tracklab.intervals import precision_reached, t_quantile, wilson
 from tracklab.metrics import statistics
 from tracklab.models import cv
-from tracklab.worlds.tracking import precision_reached
 
 LINEAR = """
 [experiment]
@@ -296,3 +295,24 @@ def test_closed_loop_intervals_equal_numpy_on_the_runs(tmp_path):
     assert paired["difference"] == pytest.approx(loop.mean() - kf.mean(), rel=1e-9)
     assert paired["half_width"] == pytest.approx(_t_half_width(loop - kf), rel=1e-6)
     assert math.isnan(doc["filters"]["double_loop"]["summary"]["max_rate_err"])  # no estimator, no rate error
+
+
+def test_auto_runs_on_a_closed_loop_stop_once_the_target_is_met(tmp_path):
+    """runs = "auto" in a servo file: chunks run until every case's maximum-tracking-error interval
+    is within the target; the result is a fixed run of that many runs, and one chunk fewer was
+    not enough."""
+    auto = load_experiment(write(tmp_path, SERVO.replace("runs = 10", 'runs = "auto"\ntarget_precision = 0.08\n'
+                                                         "max_runs = 400"), "auto.toml"))
+    doc = auto.simulate(auto.runs, auto.seed)
+    n = doc["runs"]
+    assert doc["auto"]["reached"] and doc["auto"]["max_runs"] == 400 and n < 400 and n % 4 == 0
+    for f in doc["filters"].values():
+        assert f["half_width"]["max_track_err"] <= 0.08 * f["summary"]["max_track_err"]
+    fixed = load_experiment(write(tmp_path, SERVO.replace("runs = 10", f"runs = {n}"), "fixed.toml"))
+    same = fixed.simulate(fixed.runs, fixed.seed)
+    for label, f in doc["filters"].items():
+        np.testing.assert_equal(f["summary"], same["filters"][label]["summary"])  # NaN: no rate estimate
+        np.testing.assert_equal(f["half_width"], same["filters"][label]["half_width"])
+    fewer = fixed.simulate(n - 4, fixed.seed)
+    assert any(f["half_width"]["max_track_err"] > 0.08 * f["summary"]["max_track_err"]
+               for f in fewer["filters"].values())

@@ -59,8 +59,6 @@ def cmd_run(args) -> int:
     if args.runs is not None and (args.runs > MAX_RUNS or args.runs * per_run > 10**12):
         raise ConfigError(args.experiment, "--runs", args.runs, f"must be <= {MAX_RUNS} and runs x steps <= 1e12")
     target = args.precision
-    if target is not None and not hasattr(exp, "target_precision"):
-        raise ConfigError(args.experiment, "--precision", target, "is for open-loop tracking experiments")
     if target is not None and args.runs is None and exp.target_precision is None:
         from tracklab.config.fields import AUTO_MAX_RUNS
 

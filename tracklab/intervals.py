@@ -116,6 +116,22 @@ def paired_half_width(grad_f, grad_b, cov_ff, cov_bb, cov_fb, n, level: float = 
     return t_quantile(level, n - 1) * np.sqrt(max(var, 0.0) / n)
 
 
+def precision_reached(samples, target: float, level: float = LEVEL, stat=("root", [0])) -> bool:
+    """Whether every lane's ``stat`` of its runs' samples (default: the root of the first sample's
+    mean, an RMSE) has its ``level`` interval within ± ``target`` of itself (relative); a lane
+    with no healthy run does not hold it back (``samples``: a ``RunSamples``; None: not yet)."""
+    if samples is None:
+        return False
+    for li in range(samples.n.shape[-1]):
+        own = samples.pair(li, li)
+        if own.n == 0:
+            continue
+        v, g = value_and_gradient(stat, own.mean_f)
+        if not half_width(g, own.cov_ff, own.n, level) <= target * abs(v):
+            return False
+    return True
+
+
 def missing(v) -> bool:
     """None or not finite: a statistic with no healthy run behind it."""
     return v is None or (isinstance(v, (float, np.floating)) and not math.isfinite(v))

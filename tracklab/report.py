@@ -155,11 +155,17 @@ def table_caption(stats) -> str:
     if base is not None:
         text += (f" Δ: difference to {base} on the same runs with its paired interval; "
                  f"(n.s.): not significant at {level:.0%}.")
-    if stats.get("auto"):
-        a = stats["auto"]
-        text += (f" Runs chosen automatically: {runs} runs brought every filter's position-RMSE interval within "
-                 f"± {100 * a['target']:g} % (at most {a['max_runs']})" + ("." if a["reached"] else "; the target was not reached."))
-    return text
+    return text + auto_note(stats)
+
+
+def auto_note(stats) -> str:
+    """How many runs ``runs = "auto"`` took and whether it met its target ("" for a fixed count)."""
+    a = stats.get("auto")
+    if not a:
+        return ""
+    return (f" Runs chosen automatically: {stats.get('runs')} runs brought every filter's "
+            f"{a.get('statistic', 'position-RMSE')} interval within ± {100 * a['target']:g} % (at most {a['max_runs']})"
+            + ("." if a["reached"] else "; the target was not reached."))
 
 
 def md_cell(text) -> str:

@@ -137,7 +137,8 @@ AUTO_MAX_RUNS = 100_000  # the most runs = "auto" takes unless max_runs says
 
 def auto_runs(ex: Section):
     """``runs = "auto"``: (the most runs it may take, the target relative half-width of every
-    filter's position RMSE); (None, None) when the runs are a number."""
+    filter's headline interval: its position RMSE, an airborne tracker's pointing error, a servo
+    case's maximum tracking error); (None, None) when the runs are a number."""
     if ex.get("runs") != "auto":
         for key in ("target_precision", "max_runs"):
             if ex.has(key):
@@ -150,18 +151,15 @@ def auto_runs(ex: Section):
     return ex.integer("max_runs", AUTO_MAX_RUNS, lo=2, hi=MAX_RUNS), target
 
 
-def experiment_header(f, raw, auto=False):
-    """[experiment]'s name, runs, seed, precision (and description) -> (name, runs, seed, precision, section).
-
-    ``auto``: the experiment may say ``runs = "auto"`` (``auto_runs`` reads it; runs is then None)."""
+def experiment_header(f, raw):
+    """[experiment]'s name, runs, seed, precision (and description) -> (name, runs, seed, precision, section);
+    runs is None for ``runs = "auto"`` (``auto_runs`` reads its target)."""
     ex = Section(f, "experiment", raw["experiment"])
     name = ex.string("name", required=True)
     if not NAME_RE.fullmatch(name):
         raise ConfigError(f, "experiment.name", name, "must be 1-100 characters of letters, digits, '_', '.', '-'")
-    if auto and ex.get("runs") == "auto":
+    if ex.get("runs") == "auto":
         runs = None
-    elif ex.get("runs") == "auto":
-        raise ConfigError(f, "experiment.runs", "auto", 'runs = "auto" is for open-loop tracking experiments: give a number')
     else:
         runs = ex.integer("runs", required=True, lo=1, hi=MAX_RUNS)
     seed = ex.integer("seed", 0, lo=0, hi=2**32 - 1)

@@ -3,7 +3,8 @@
 ```toml
 [experiment]
 name = "dekf_on_axis"
-runs = 100                     # Monte-Carlo runs: miss-distance noise differs
+runs = 100                     # Monte-Carlo runs: miss-distance noise differs; or "auto" with
+                               # target_precision (and max_runs): every case's max error that tight
 seed = 0
 
 [servo]
@@ -50,7 +51,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from tracklab.config.fields import MAX_RUN_STEPS, Section, check_sections, experiment_header, level_and_baseline
+from tracklab.config.fields import (MAX_RUN_STEPS, Section, auto_runs, check_sections, experiment_header,
+                                    level_and_baseline)
 from tracklab.errors import ConfigError
 from tracklab.experiments.servo import (CAMERA_LOOPS, ESTIMATOR_KINDS, MAX_TICKS, TICK_RANGE, Case, EstimatorConfig,
                                         ServoExperiment)
@@ -75,6 +77,7 @@ def parse_servo(f: Path, raw: dict) -> ServoExperiment:
     check_sections(f, raw, ("experiment", "target", "case"), ("experiment", "servo", "target", "estimator", "case", "report"),
                    "a servo experiment")
     name, runs, seed, precision, ex = experiment_header(f, raw)
+    max_runs, target_precision = auto_runs(ex)
     chunk = ex.integer("chunk", None, lo=1, hi=100_000)
     ex.check_unknown()
     sv = Section(f, "servo", raw["servo"])
@@ -89,6 +92,8 @@ def parse_servo(f: Path, raw: dict) -> ServoExperiment:
     if frames * frame_ticks > MAX_TICKS:
         raise ConfigError(f, "servo.frames", frames,
                           f"x frame_ticks = {frames * frame_ticks:.3g} servo ticks a run; at most {MAX_TICKS:.0e}")
+    if runs is None:  # runs = "auto": at most max_runs (unless given, what the run limit allows)
+        runs = max_runs if ex.has("max_runs") else max(2, min(max_runs, MAX_RUN_STEPS // (frames * frame_ticks)))
     if runs * frames * frame_ticks > MAX_RUN_STEPS:
         raise ConfigError(f, "experiment.runs", runs, f"runs x servo ticks must be <= {MAX_RUN_STEPS:.0e}")
     delay = sv.integer("delay", 2, lo=1, hi=100)
@@ -158,4 +163,5 @@ def parse_servo(f: Path, raw: dict) -> ServoExperiment:
     level, baseline = level_and_baseline(rp, case_labels, "cases")
     rp.check_unknown()
     return ServoExperiment(f, name, runs, seed, frames, frame_dt, frame_ticks, delay, noise, settle, accel_ff, target,
-                           estimators, cases, raw, precision=precision, chunk=chunk, level=level, baseline=baseline)
+                           estimators, cases, raw, precision=precision, chunk=chunk, level=level, baseline=baseline,
+                           target_precision=target_precision)

@@ -201,7 +201,7 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
     f = path = Path(path)
     check_sections(f, raw, ("experiment", "scenario", "sensor"),
                    ("experiment", "scenario", "sensor", "filter", "prior", "report", "study"))
-    name, runs, seed, precision, ex = experiment_header(f, raw, auto=True)
+    name, runs, seed, precision, ex = experiment_header(f, raw)
     max_runs, target = auto_runs(ex)
     runs = runs or max_runs
     dt = ex.number("dt", required=True, positive=True)

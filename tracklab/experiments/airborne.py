@@ -63,6 +63,7 @@ class AirborneExperiment:
     chunk: int | None = None  # runs per chunk; None: default_chunk()
     level: float = 0.95  # of every confidence interval
     baseline: str | None = None  # the tracker the paired differences are to (None: the first)
+    target_precision: float | None = None  # runs = "auto": stop when every tracker's pointing RMS is this tight
 
     @property
     def period(self) -> float:
@@ -224,14 +225,25 @@ class AirborneExperiment:
         """Reverse mode keeps every run's loop state (tracker, antenna, truth: ~200 values) per tick."""
         return runs_per_step * self.ticks * len(self.trackers) * 200 * 8.0
 
-    def monte_carlo(self, runs=None, seed=None, progress=None, precision=None, chunk=None):
+    def headline(self):
+        """The statistic ``runs = "auto"`` makes tight: each tracker's true pointing error RMS over
+        the whole run (the root of its samples' last window's first quantity)."""
+        return ("root", [len(self.windows) * len(SAMPLE_QUANTITIES)])
+
+    def monte_carlo(self, runs=None, seed=None, progress=None, precision=None, chunk=None, target_precision=None):
         """The runner's outcome: per-period sums over runs for every tracker ({label: sums}) and the
-        runs' samples."""
+        runs' samples. With a target precision (``target_precision``, or the file's runs = "auto")
+        chunks run until every tracker's pointing-error interval is that tight, ``runs`` at most."""
         from tracklab.airborne.world import world
+        from tracklab.intervals import precision_reached
         from tracklab.montecarlo import runner
 
+        target = target_precision or self.target_precision
+        enough = None if target is None else (
+            lambda sums, samples, done: precision_reached(samples, target, self.level, self.headline()))
         return runner.run(world(self.structure(chunk)), self.params(), runs or self.runs,
-                          self.seed if seed is None else seed, precision=precision or self.precision, progress=progress)
+                          self.seed if seed is None else seed, precision=precision or self.precision, progress=progress,
+                          enough=enough)
 
     @property
     def ticks(self) -> int:
@@ -250,12 +262,19 @@ class AirborneExperiment:
         check(self.path, self.memory_bytes(runs), limit, f"{self.steps} filter periods a run",
               "raise airborne.sample_dt or airborne.average, or shorten airborne.duration")
 
-    def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None, max_memory=None):
+    def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None, max_memory=None,
+            target_precision=None):
+        from tracklab.intervals import precision_reached
         from tracklab.report import run_into_folder
 
         def simulate():
-            out = self.monte_carlo(runs or self.runs, seed, progress, precision)
-            return self.document(out.sums, out.runs, out.wall_s, out.compile_s, precision or self.precision, out.samples)
+            target = target_precision or self.target_precision
+            out = self.monte_carlo(runs or self.runs, seed, progress, precision, target_precision=target)
+            doc = self.document(out.sums, out.runs, out.wall_s, out.compile_s, precision or self.precision, out.samples)
+            if target is not None:
+                doc["auto"] = {"target": target, "max_runs": runs or self.runs, "statistic": "pointing-error RMS",
+                               "reached": precision_reached(out.samples, target, self.level, self.headline())}
+            return doc
 
         return run_into_folder(self, out, runs, max_memory, simulate,
                                lambda doc, tmp: write_airborne_results(doc, tmp, figures))
@@ -387,7 +406,7 @@ def airborne_tables(doc) -> str:
     interval; the paired differences to the baseline tracker; the percentiles of the runs' pointing
     errors; settling times and lost lock (with the Wilson interval of its fraction)."""
     from tracklab.intervals import with_half_width
-    from tracklab.report import _diverged_cell, _fmt, _paired_cell
+    from tracklab.report import _diverged_cell, _fmt, _paired_cell, auto_note
 
     windows = doc["windows"]
     filters = doc["filters"]
@@ -420,7 +439,7 @@ def airborne_tables(doc) -> str:
         notes.append(f"± : half-width of the {level:.0%} confidence interval over the runs in lock (Student t over "
                      "the runs' window averages; delta method for an RMS). Differences: on the same runs, with "
                      f"their paired interval; (n.s.): not significant at {level:.0%}. Lost lock: runs, with the "
-                     "Wilson interval of their fraction.")
+                     "Wilson interval of their fraction." + auto_note(doc))
     return "\n".join(out) + "\n" + "".join(f"\n{n}\n" for n in notes)
 
 

@@ -68,6 +68,7 @@ class ServoExperiment:
     chunk: int | None = None  # runs per chunk; None: default_chunk()
     level: float = 0.95  # of every confidence interval
     baseline: str | None = None  # the case the paired differences are to (None: the first)
+    target_precision: float | None = None  # runs = "auto": stop when every case's max tracking error is this tight
 
     @property
     def steps(self) -> int:
@@ -158,7 +159,8 @@ class ServoExperiment:
         check(self.path, self.memory_bytes(runs), limit, f"{self.ticks} servo ticks a run",
               "fewer servo.frames or servo.frame_ticks")
 
-    def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None, max_memory=None):
+    def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None, max_memory=None,
+            target_precision=None):
         import jax
 
         from tracklab.report import run_into_folder
@@ -167,7 +169,8 @@ class ServoExperiment:
 
         def simulate():
             with jax.enable_x64(precision == "float64"):  # single precision: traced and run in float32
-                doc = self.simulate(runs or self.runs, self.seed if seed is None else seed, progress, precision)
+                doc = self.simulate(runs or self.runs, self.seed if seed is None else seed, progress, precision,
+                                    target_precision=target_precision)
             return dict(doc, precision=precision)
 
         return run_into_folder(self, out, runs, max_memory, simulate,
@@ -288,7 +291,11 @@ class ServoExperiment:
         """Reverse mode keeps every run's loop state (servo blocks, estimator: ~40 values) per tick."""
         return runs_per_step * self.ticks * len(self.cases) * 40 * 8.0
 
-    def simulate(self, runs, seed, progress=None, precision=None, chunk=None):
+    def simulate(self, runs, seed, progress=None, precision=None, chunk=None, target_precision=None):
+        """Train what is to be trained, run the cases' Monte-Carlo runs (with a target precision,
+        ``target_precision`` or the file's runs = "auto", until every case's maximum-tracking-error
+        interval is that tight, ``runs`` at most) and return the statistics document."""
+        from tracklab.intervals import precision_reached
         from tracklab.montecarlo import runner
         from tracklab.servo.world import world
 
@@ -298,8 +305,14 @@ class ServoExperiment:
                 est, training[e.label] = self.train(e, self.build_estimator(e), progress)
                 trained[e.label] = est.params
         structure = self.structure(chunk)
+        max_runs = runs
+        target = target_precision or self.target_precision
+        headline = ("mean", 0)  # each run's maximum tracking error
+        enough = None if target is None else (
+            lambda sums, samples, done: precision_reached(samples, target, self.level, headline))
         out = runner.run(world(structure), self.params(trained), runs, seed, precision=precision or self.precision,
-                         progress=progress)
+                         progress=progress, enough=enough)
+        runs = out.runs
         cases = self.summarise(structure, None, out.sums, out)["filters"]
         examples = {c.label: {"error": np.asarray(out.sums[c.label]["example_error"]),
                               "rate_error": np.asarray(out.sums[c.label]["example_rate_error"])} for c in structure.cases}
@@ -316,7 +329,9 @@ class ServoExperiment:
                             "t_frames": self.frame_dt * np.arange(self.frames),
                             "rate_error": {k: v["rate_error"] for k, v in examples.items()
                                            if self._case(k).estimator not in (None, "perfect")}},
-        }
+        } | ({"auto": {"target": target, "max_runs": max_runs, "statistic": "maximum-tracking-error",
+                       "reached": precision_reached(out.samples, target, self.level, headline)}}
+             if target is not None else {})
 
     def train(self, cfg: EstimatorConfig, est, progress=None):
         """Train a DEKF estimator's initial weights and λ on the rate it feeds forward; held-out evaluation."""

@@ -37,7 +37,7 @@ from tracklab import random
 from tracklab.filters import build
 from tracklab.filters.core import Filter, Meas, Prior, trace_problem
 from tracklab.filters.fusion import view_of
-from tracklab.intervals import LEVEL, half_width, value_and_gradient
+from tracklab.intervals import LEVEL, precision_reached
 from tracklab.metrics import REPORT_WINDOW
 from tracklab.linalg import elementwise_products, mahalanobis2, mahalanobis2_logdet, norm, sum_elements
 from tracklab.models import MODELS, cv, cv_index, interleaved
@@ -728,22 +728,6 @@ def default_chunk(scenario, sensor, budget=2**28) -> int:
     alone, never on the run count: any number of runs uses the same compiled program."""
     width = 2 * scenario.dim + sensor.m
     return int(np.clip(budget // (8 * scenario.steps * width), 64, 1000 * jax.device_count()))
-
-
-def precision_reached(samples, target: float, level: float = LEVEL) -> bool:
-    """Whether every filter's time-averaged position RMSE has its ``level`` interval within
-    ± ``target`` of itself (relative); a filter with no healthy run does not hold it back."""
-    if samples is None:
-        return False
-    lanes = samples.n.shape[-1]
-    for li in range(lanes):
-        own = samples.pair(li, li)
-        if own.n == 0:
-            continue
-        v, g = value_and_gradient(("root", [0]), own.mean_f)  # sq_pos is the first sample
-        if not half_width(g, own.cov_ff, own.n, level) <= target * v:
-            return False
-    return True
 
 
 def run(structure: TrackingStructure, params: TrackingParams, runs: int, key, *, progress=None,
