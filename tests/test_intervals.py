@@ -11,6 +11,8 @@ from tracklab.intervals import precision_reached, t_quantile, wilson
 from tracklab.metrics import statistics
 from tracklab.models import cv
 
+import test_closed_loop_studies as studies  # the closed loops' tiny files
+
 LINEAR = """
 [experiment]
 name = "linear_small"
@@ -200,51 +202,8 @@ def test_percentiles_equal_numpy_on_each_runs_error():
     assert doc["filters"]["f"]["half_width"]["rmse_pos"] == pytest.approx(hw, rel=1e-9)
 
 
-AIRBORNE = """
-[experiment]
-name = "airborne_tiny"
-runs = 10
-seed = 1
-chunk = 4
-
-[airborne]
-duration = 1.0
-
-[[tracker]]
-label = "joint"
-kind = "cd_ekf"
-
-[[tracker]]
-label = "classical"
-kind = "classical"
-"""
-
-SERVO = """
-[experiment]
-name = "servo_tiny"
-runs = 10
-seed = 2
-chunk = 4
-
-[servo]
-frames = 300
-settle = 1.0
-
-[target]
-kind = "sine"
-
-[[estimator]]
-label = "KF"
-kind = "kf"
-q = 0.01
-
-[[case]]
-mode = "on_axis"
-estimator = "KF"
-
-[[case]]
-mode = "double_loop"
-"""
+AIRBORNE = studies.AIRBORNE.replace("runs = 4", "runs = 10") + '\n[[tracker]]\nlabel = "classical"\nkind = "classical"\n'
+SERVO = studies.SERVO.replace("runs = 4", "runs = 10") + '\n[[case]]\nmode = "double_loop"\n'
 
 
 def _t_half_width(v):

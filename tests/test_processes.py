@@ -5,51 +5,18 @@ import json
 import os
 import socket
 import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 
-EXPERIMENT = """
-[experiment]
-name = "two_processes"
-runs = 50
-chunk = 20
-dt = 1.0
-steps = 20
+from test_cli import _command
+from test_intervals import LINEAR
 
-[scenario]
-kind = "crossing"
-speed = 100.0
-offset = 2000.0
-start_x = -5000.0
-accel_sigma = 2.0
-
-[sensor]
-kind = "cartesian"
-sigma = [30.0, 60.0]
-
-[prior]
-pos_sigma = 50.0
-vel_sigma = 10.0
-
-[[filter]]
-kind = "kf"
-label = "KF"
-accel_sigma = 2.0
-
+EXPERIMENT = LINEAR.replace('name = "linear_small"', 'name = "two_processes"').replace("runs = 20", "runs = 50") + """
 [[filter]]
 kind = "kf"
 label = "KF high q"
 accel_sigma = 6.0
 """
-
-
-def _command():
-    script = Path(sys.executable).parent / "tracklab"
-    if script.is_file() and os.access(script, os.X_OK):
-        return [str(script)]
-    return [sys.executable, "-m", "tracklab.cli"]
 
 
 def _free_port() -> int:
