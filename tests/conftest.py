@@ -9,7 +9,9 @@ One persistent compilation cache for the whole session, in a fresh temporary fol
 shared by the workers and every subprocess the tests start (the CLI's included): the
 suite's time is mostly XLA compiling, and tests that build the same program (the same
 experiment at the same chunk size, the CLI run on the same file, a sweep point run again
-on its own) compile it once. Nothing is read from or written to the user's own cache.
+on its own) compile it once, and the runner's store of compiled programs
+(``montecarlo.programs``) in the same folder, so that a process that meets a program another
+one compiled loads it without tracing. Nothing is read from or written to the user's own cache.
 """
 
 import os
@@ -31,6 +33,10 @@ _CACHE_KEY = "tracklab_jax_cache"
 def _use_cache(folder):
     os.environ["JAX_COMPILATION_CACHE_DIR"] = folder
     os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0.5"
+    os.environ["TRACKLAB_CACHE_DIR"] = folder  # the command's store of compiled programs: <folder>/programs
+    from tracklab.montecarlo import programs
+
+    programs.keep_in(os.path.join(folder, "programs"))
 
 
 def pytest_configure(config):

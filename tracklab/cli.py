@@ -293,17 +293,22 @@ def build_parser():
 
 
 def _compilation_cache():
-    """Keep compiled programs between invocations (JAX's persistent cache).
+    """Keep compiled programs between invocations: JAX's persistent cache, and beside it the
+    runner's own store (``montecarlo.programs``), which a new process finds before tracing.
 
-    TRACKLAB_CACHE_DIR chooses the folder; an empty value turns the cache off.
-    JAX's own JAX_COMPILATION_CACHE_DIR, when set, takes precedence.
+    TRACKLAB_CACHE_DIR chooses the folder (JAX's cache in it, the store in its ``programs``
+    folder); an empty value turns both off. JAX's own JAX_COMPILATION_CACHE_DIR, when set,
+    takes precedence for JAX's cache.
     """
     import os
 
-    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
-        return
     folder = os.environ.get("TRACKLAB_CACHE_DIR", str(Path.home() / ".cache" / "tracklab" / "jax"))
     if not folder:
+        return
+    from tracklab.montecarlo import programs
+
+    programs.keep_in(Path(folder) / "programs")
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
         return
     import jax
 

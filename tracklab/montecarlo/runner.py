@@ -53,6 +53,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from tracklab.montecarlo import programs
 from tracklab.montecarlo.samples import RunSamples
 
 
@@ -182,7 +183,7 @@ def in_precision(params, precision: str):
 
 _PROGRAMS: OrderedDict = OrderedDict()  # (structure, shapes, chunk, precision, devices) -> compiled program
 _KEEP = 32
-compiles = 0  # programs compiled (or loaded from the persistent cache) by this process
+compiles = 0  # programs compiled (or loaded from disk) by this process
 
 
 def share(world: World) -> int:
@@ -194,7 +195,8 @@ def share(world: World) -> int:
 def program(world: World, params, precision: str = "float64", points: int | None = None):
     """The compiled chunk program of ``world`` for params shaped like ``params`` (in ``precision``):
     (callable, seconds spent tracing, lowering and compiling; 0 if this process already held it).
-    It runs this process's ``share`` of a chunk on its own devices.
+    It runs this process's ``share`` of a chunk on its own devices. A program kept on disk by an
+    earlier process (``programs``, when the store is on) is loaded instead of traced and compiled.
 
     ``points``: the params hold that many parameter sets along a leading axis (a sweep's grid
     points), evaluated on the same runs (common random numbers) by one program."""
@@ -207,14 +209,23 @@ def program(world: World, params, precision: str = "float64", points: int | None
         _PROGRAMS.move_to_end(key)
         return _PROGRAMS[key], 0.0
     t0 = time.perf_counter()
-    fn = per_device(world)
-    lead = ()
-    if points is not None:  # parts (points, devices, …)
-        fn = jax.vmap(fn, in_axes=(0, None, None, None, 0))
-        lead = (points,)
-    args = (params, jax.random.key(0), jnp.zeros((B,), jnp.uint32), jnp.zeros((B,), bool),
-            jnp.zeros(lead + (world.lanes, B), bool))
-    compiled = jax.jit(fn).lower(*args).compile()
+    stored = programs.key(world.structure, treedef, shapes, B, precision, points)
+    compiled = programs.load(stored) if stored else None
+    if compiled is None:
+        fn = per_device(world)
+        lead = ()
+        if points is not None:  # parts (points, devices, …)
+            fn = jax.vmap(fn, in_axes=(0, None, None, None, 0))
+            lead = (points,)
+        args = (params, jax.random.key(0), jnp.zeros((B,), jnp.uint32), jnp.zeros((B,), bool),
+                jnp.zeros(lead + (world.lanes, B), bool))
+        lowered = jax.jit(fn).lower(*args)
+        if stored:
+            compiled, here = programs.compile_here(lowered)
+            if here:  # XLA compiled it in this process (not loaded by JAX from its own cache)
+                programs.store(stored, compiled)
+        else:
+            compiled = lowered.compile()
     compile_s = time.perf_counter() - t0
     compiles += 1
     _PROGRAMS[key] = compiled

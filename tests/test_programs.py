@@ -1,0 +1,104 @@
+"""Compiled programs kept on disk (``montecarlo.programs``): a new process loads the program
+instead of tracing and compiling it, with the same statistics to the last bit; a filter of
+one's own is never kept; an unreadable file is compiled again; a program JAX loaded from its
+own cache is never kept."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from tracklab.config import load_experiment
+from tracklab.montecarlo import programs
+
+from test_runner import AIRBORNE, SERVO, TRACKING, _sums, _write
+
+RUN = """
+import json, sys
+import tracklab
+tracklab.configure()
+sys.path.insert(0, sys.argv[1])
+from test_runner import _sums
+from tracklab.config import load_experiment
+from tracklab.montecarlo import programs
+programs.keep_in(sys.argv[2])
+out = {path: {k: v.tolist() for k, v in _sums(load_experiment(path), 3).items()} for path in sys.argv[3:]}
+out["loaded"] = programs.loaded
+print(json.dumps(out))
+"""
+
+
+def _in_new_process(tmp_path, store, paths, jax_cache=None):
+    """``RUN`` in a fresh process with the store in ``store`` and JAX's persistent cache in
+    ``jax_cache`` (none by default)."""
+    script = tmp_path / "run.py"
+    script.write_text(RUN)
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    if jax_cache is not None:
+        env["JAX_COMPILATION_CACHE_DIR"] = str(jax_cache)
+        env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+    done = subprocess.run([sys.executable, str(script), os.path.dirname(__file__), str(store), *map(str, paths)],
+                          capture_output=True, text=True, check=True, env=env)
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def test_a_program_kept_on_disk_gives_the_same_statistics_in_a_new_process(tmp_path):
+    """Each world's program, compiled in one process and kept, is loaded by the next one (no
+    tracing, no compiling) and gives the first process's sums exactly; the numbers are inputs,
+    so a file with another value loads the same program."""
+    store = tmp_path / "programs"
+    texts = {"tracking": TRACKING, "airborne": AIRBORNE, "servo": SERVO}
+    paths = [_write(tmp_path, n, t) for n, t in texts.items()]
+    first = _in_new_process(tmp_path, store, paths)
+    kept = sorted(store.glob("*" + programs.SUFFIX))
+    assert first["loaded"] == 0 and len(kept) == 3
+    second = _in_new_process(tmp_path, store, paths)
+    assert second["loaded"] == 3 and sorted(store.glob("*" + programs.SUFFIX)) == kept
+    for path in map(str, paths):
+        assert second[path] == first[path], path
+    edited = _write(tmp_path, "edited", TRACKING.replace("sigma_r = 50.0", "sigma_r = 120.0"))
+    third = _in_new_process(tmp_path, store, [edited])
+    assert third["loaded"] == 1 and len(list(store.glob("*" + programs.SUFFIX))) == 3
+    ref = _sums(load_experiment(edited), 3)  # compiled here, in this process
+    for k, v in ref.items():
+        np.testing.assert_allclose(third[str(edited)][k], v, rtol=1e-12, atol=1e-12, err_msg=k)
+
+
+def test_a_filter_of_ones_own_is_never_kept(tmp_path):
+    """A structure that holds a Python object of the user's (their filter's functions) has no
+    key: its code is not the library's, so a kept program could outlive an edit of it."""
+    exp = load_experiment(Path(__file__).resolve().parents[1] / "experiments" / "own_filter.toml")
+    session = programs.folder()
+    programs.keep_in(tmp_path / "programs")
+    try:
+        structure, params = exp.structure(), exp.params()
+        assert programs.key(structure, jax.tree_util.tree_structure(params), (), 4, "float64", None) is None
+        exp.monte_carlo(runs=2, chunk=2)
+        assert not list((tmp_path / "programs").glob("*" + programs.SUFFIX))
+    finally:
+        programs.keep_in(session)
+
+
+def test_an_unreadable_program_is_compiled_again_and_one_from_jax_cache_is_not_kept(tmp_path):
+    """A truncated file in the folder is ignored: the program is compiled and the file written
+    anew, and the next process loads it. A program JAX loaded from its own persistent cache
+    (which serialises without some of its kernels) is never stored. The statistics are the
+    same every time."""
+    path = _write(tmp_path, "tracking", TRACKING)
+    store, jax_cache = tmp_path / "programs", tmp_path / "jax"
+    first = _in_new_process(tmp_path, store, [path], jax_cache)
+    (kept,) = store.glob("*" + programs.SUFFIX)
+    kept.write_bytes(kept.read_bytes()[:1000])
+    again = _in_new_process(tmp_path, store, [path])
+    assert again["loaded"] == 0 and kept.stat().st_size > 100_000  # written anew
+    loaded = _in_new_process(tmp_path, store, [path])
+    assert loaded["loaded"] == 1
+    other = tmp_path / "other"  # the program is in JAX's cache now: JAX loads it, nothing is stored
+    from_jax = _in_new_process(tmp_path, other, [path], jax_cache)
+    assert from_jax["loaded"] == 0 and not list(other.glob("*" + programs.SUFFIX))
+    for doc in (again, loaded, from_jax):
+        assert doc[str(path)] == first[str(path)]
