@@ -35,7 +35,7 @@ from pathlib import Path
 
 import jax
 
-KEEP = 200  # programs kept in the folder (least recently used removed first)
+KEEP = 100  # programs kept in the folder (least recently used removed first; a program is 1–20 MB)
 SUFFIX = ".program"
 _FOLDER: Path | None = None
 loaded = 0  # programs this process loaded from the folder
