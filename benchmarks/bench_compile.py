@@ -30,9 +30,10 @@ import tempfile
 import time
 from pathlib import Path
 
+from bench_rerun import _git, first_line
+
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT = ["experiments/lidar_crossing.toml", "experiments/real_flights_radar_carrier_pattern.toml"]
-_FIRST = re.compile(r"^# (?P<name>\S+): (?P<runs>\d+) runs .*?(?P<wall>[\d.]+) s wall, (?P<compile>[\d.]+) s of it")
 
 
 def with_extra_filter(src: Path, dst: Path) -> None:
@@ -62,19 +63,7 @@ def run_once(path: Path, runs: int, cache: Path, out: Path) -> tuple[float, floa
     if p.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed:\n{p.stderr[-3000:]}")
     shutil.rmtree(out, ignore_errors=True)
-    for line in p.stdout.splitlines():
-        m = _FIRST.match(line)
-        if m:
-            return wall, float(m["compile"])
-    raise SystemExit(f"no first line in the output of {' '.join(cmd)}:\n{p.stdout[:2000]}")
-
-
-def commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
-                              check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "?"
+    return wall, first_line(p.stdout)["compile_s"]
 
 
 def main():
@@ -103,7 +92,7 @@ def main():
     lines = [
         "# Compile time of `tracklab run`",
         "",
-        f"- Date: {_dt.datetime.now(_dt.timezone.utc):%Y-%m-%d %H:%M} UTC, commit {commit()}",
+        f"- Date: {_dt.datetime.now(_dt.timezone.utc):%Y-%m-%d %H:%M} UTC, commit {_git(ROOT)}",
         f"- Machine: nproc = {os.cpu_count()}, {platform.processor() or platform.machine()}, Python "
         f"{platform.python_version()}",
         f"- Command: `python benchmarks/bench_compile.py {' '.join(a.files)} --runs {a.runs}`",

@@ -105,8 +105,9 @@ def _chunks(runs, chunk):
 
 def _pass(fn, params, key, chunks, lanes):
     """One pass over all chunks with the compiled program ``fn``, as ``runner.run`` does it: call,
-    wait for the result, transfer it, combine the devices' parts, run the chunk again without the runs that diverged (none do in
-    these benchmarks, but it would be charged), add on the host (``runner.Accumulator``).
+    transfer the result and combine the devices' parts (``runner.host_sums``), run the chunk again
+    without the runs that diverged (none do in these benchmarks, but it would be charged), add on
+    the host (``runner.Accumulator``).
     Returns (per-chunk seconds, accumulator, chunks run twice)."""
     import jax
     import jax.numpy as jnp
@@ -114,16 +115,14 @@ def _pass(fn, params, key, chunks, lanes):
     from tracklab.montecarlo import runner
 
     acc = runner.Accumulator()
-    no_exclusion = jnp.zeros((lanes, chunks[0][0].shape[0]), bool)
+    B = chunks[0][0].shape[0]
+    no_exclusion = jnp.zeros((lanes, B), bool)
     times, twice = [], 0
-    def combined(parts):  # the devices' parts of the chunk, combined on the host (as runner.run does)
-        return runner.combine_devices(jax.device_get(jax.block_until_ready(parts)), chunks[0][0].shape[0])
-
     for idx, live in chunks:
         t0 = time.perf_counter()
-        sums, flags = runner.pop_diverged(combined(fn(params, key, idx, live, no_exclusion)))
+        sums, flags = runner.pop_diverged(runner.host_sums(fn(params, key, idx, live, no_exclusion), B))
         if flags is not None and flags.any():
-            sums, _ = runner.pop_diverged(combined(fn(params, key, idx, live, jnp.asarray(flags))))
+            sums, _ = runner.pop_diverged(runner.host_sums(fn(params, key, idx, live, jnp.asarray(flags)), B))
             twice += 1
         acc.add(sums)
         times.append(time.perf_counter() - t0)

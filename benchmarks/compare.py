@@ -278,6 +278,33 @@ def draws_alone(exp):
     return jax.jit(fn)
 
 
+def _best_pass(call, parts, repeat):
+    """``call(part)`` over every part, ``repeat`` timed passes after a first call: (fastest pass s,
+    compile s = first call minus a steady one, outputs of the fastest pass)."""
+    import jax
+
+    t0 = time.perf_counter()
+    first_out = jax.block_until_ready(call(parts[0]))
+    first = time.perf_counter() - t0
+    best, outs = float("inf"), [first_out]
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        outs_i = jax.block_until_ready([call(p) for p in parts])
+        wall = time.perf_counter() - t0
+        if wall < best:
+            best, outs = wall, outs_i
+    return best, max(first - best / len(parts), 0.0), outs
+
+
+def time_jax(fn, prior, z, chunk, repeat):
+    """(best wall over all runs in chunks, compile s, outputs of the first chunk)."""
+    import jax.numpy as jnp
+
+    parts = [(jnp.asarray(prior[a:a + chunk]), jnp.asarray(z[a:a + chunk])) for a in range(0, len(z), chunk)]
+    best, compile_s, outs = _best_pass(lambda p: fn(*p), parts, repeat)
+    return best, compile_s, outs[0]
+
+
 def time_keyed(fn, runs, chunk, repeat):
     """A ``(key, idx) -> sums`` function over ``runs`` runs in chunks: (best wall, compile s, sums of all runs)."""
     import jax
@@ -286,35 +313,8 @@ def time_keyed(fn, runs, chunk, repeat):
 
     key = jax.random.key(0)
     parts = [jnp.arange(a, a + chunk, dtype=jnp.uint32) for a in range(0, runs, chunk)]
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn(key, parts[0]))
-    first = time.perf_counter() - t0
-    best, total = float("inf"), None
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        outs = [fn(key, idx) for idx in parts]
-        total = jax.tree_util.tree_map(lambda *a: np.sum([np.asarray(x) for x in a], axis=0), *jax.block_until_ready(outs))
-        best = min(best, time.perf_counter() - t0)
-    return best, max(first - best / len(parts), 0.0), total
-
-
-def time_jax(fn, prior, z, chunk, repeat):
-    """(best wall over all runs in chunks, compile s, outputs of the first chunk)."""
-    import jax
-    import jax.numpy as jnp
-
-    parts = [(jnp.asarray(prior[a:a + chunk]), jnp.asarray(z[a:a + chunk])) for a in range(0, len(z), chunk)]
-    t0 = time.perf_counter()
-    first_out = jax.block_until_ready(fn(*parts[0]))
-    first = time.perf_counter() - t0
-    best = float("inf")
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        for p in parts:
-            jax.block_until_ready(fn(*p))
-        best = min(best, time.perf_counter() - t0)
-    per_chunk = best / len(parts)
-    return best, max(first - per_chunk, 0.0), first_out
+    best, compile_s, outs = _best_pass(lambda idx: fn(key, idx), parts, repeat)
+    return best, compile_s, jax.tree_util.tree_map(lambda *a: np.sum([np.asarray(x) for x in a], axis=0), *outs)
 
 
 # ----------------------------------------------------------------------------- NumPy, vectorised over runs

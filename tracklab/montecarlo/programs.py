@@ -9,18 +9,21 @@ library's code and JAX make of them — the source of every ``tracklab`` module,
 of jax and jaxlib, the JAX settings that change a trace, ``XLA_FLAGS`` and the CPU. It keeps
 the compiled executable (``jax.experimental.serialize_executable``).
 
-A program is stored only when all of it is the library's own code, whose source is part of
-the key: the structure's text and the params' pytree structure name no Python object (a
-filter, truth or sensor of one's own shows as ``<function … at 0x…>``: its code could change
-under the same name) and no elided array, and every pytree node type is tracklab's, JAX's or
-a built-in one. Only on the CPU (where the only kernels outside XLA a program calls are
-LAPACK's, set up before loading) and in a run of one process. ``keep_in(folder)`` turns the store on (the
-``tracklab`` command does, beside JAX's cache); nothing is stored before it is called.
+A program is stored only when
+  * all of it is the library's own code, whose source is part of the key: the structure's
+    text and the params' pytree structure name no Python object (a filter, truth or sensor of
+    one's own shows as ``<function … at 0x…>``: its code could change under the same name) and
+    no elided array, and every pytree node type is tracklab's, JAX's or a built-in one;
+  * XLA compiled it in this process: one that JAX loaded from its own persistent cache
+    serialises without some of its kernels' code;
+  * it runs on the CPU (where the only kernels outside XLA a program calls are LAPACK's, set
+    up before loading) in a run of one process.
 
-A program is stored only when XLA compiled it in this process: one that JAX loaded from its
-own persistent cache serialises without some of its kernels' code. Files are written atomically (a temporary name, then a rename) and only under the folder's
-own names (``*.program``); the least recently used beyond ``KEEP`` are removed. A file that
-cannot be read (truncated, another jaxlib) is ignored and written anew.
+``keep_in(folder)`` turns the store on (the ``tracklab`` command does, beside JAX's cache);
+nothing is stored before it is called. Files are written atomically (a temporary name, then a
+rename) and only under the folder's own names (``*.program``); the least recently used beyond
+``KEEP`` are removed. A file that cannot be read (truncated, another jaxlib) is ignored and
+written anew.
 """
 
 from __future__ import annotations
@@ -151,7 +154,6 @@ def load(k: str):
 
 
 _jax_cache_hits = 0
-_listening = False
 
 
 def _count_jax_cache_hits(event, **_):
@@ -160,14 +162,16 @@ def _count_jax_cache_hits(event, **_):
         _jax_cache_hits += 1
 
 
+@functools.lru_cache(maxsize=1)
+def _listen() -> None:
+    jax.monitoring.register_event_listener(_count_jax_cache_hits)
+
+
 def compile_here(lowered):
     """``lowered.compile()``, and whether XLA compiled it in this process (True) rather than JAX
     loading it from its persistent cache (an executable JAX loaded serialises without some of
     its kernels' code, so only the first may be stored)."""
-    global _listening
-    if not _listening:
-        jax.monitoring.register_event_listener(_count_jax_cache_hits)
-        _listening = True
+    _listen()
     before = _jax_cache_hits
     compiled = lowered.compile()
     return compiled, _jax_cache_hits == before

@@ -121,6 +121,14 @@ def combine_devices(parts, B, xp=np):
     return jax.tree_util.tree_map_with_path(leaf, parts)
 
 
+def host_sums(parts, B, lead=0):
+    """One chunk's sums on the host from a compiled program's output: the devices' parts
+    (their device axis at position ``lead``: 1 behind a sweep's points) combined by
+    ``combine_devices``."""
+    parts = jax.tree_util.tree_map(lambda v: np.moveaxis(np.asarray(v), lead, 0), jax.device_get(parts))
+    return combine_devices(parts, B)
+
+
 def run_keys(key, idx):
     """Each run's key: run i draws from ``fold_in(key, i)``."""
     return jax.vmap(lambda i: jax.random.fold_in(key, i))(idx)
@@ -321,9 +329,8 @@ def run(world: World, params, runs: int, key, *, precision: str = "float64", poi
         n_chunks = -(-runs // (B * n_proc))
         lead = 1 if points is not None else 0
 
-        def combined(parts):  # the devices' parts of one chunk, combined on the host
-            parts = jax.tree_util.tree_map(lambda v: np.moveaxis(np.asarray(v), lead, 0), jax.device_get(parts))
-            return combine_devices(parts, B)
+        def combined(parts):
+            return host_sums(parts, B, lead)
 
         no_exclusion = jnp.zeros(((points,) if points is not None else ()) + (world.lanes, B), bool)
         for c in range(n_chunks):
