@@ -599,10 +599,11 @@ def plot_airborne(doc, folder: Path):
         rows = -(-len(windows) // cols)
         fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols + 2.2, 3.0 * rows + 0.5), squeeze=False,
                                  layout="constrained")
-        groups = []
+        notes = []  # which curves coincide, panel by panel
         for ax, w in zip(axes.flat, windows):
             have = {l: f for l, f in filters.items() if f"pointing[{w}]" in f.get("cdf", {})}
-            groups += _cdf_panel(ax, have, st, f"pointing[{w}]")
+            groups = _cdf_panel(ax, have, st, f"pointing[{w}]")
+            notes += [f"{w}: {coincide_note(groups)}"] if groups else []
             ax.set_title(w, fontsize=9)
             ax.set_xlabel("run's RMS pointing error (mrad)", fontsize=8)
         for ax in axes[:, 0]:
@@ -610,7 +611,7 @@ def plot_airborne(doc, folder: Path):
         for ax in list(axes.flat)[len(windows):]:
             ax.axis("off")
         fig.suptitle(f"{title}: distribution of the runs' RMS true pointing error per window", fontsize=9)
-        _legend(fig, axes, "; ".join(dict.fromkeys(coincide_note([g]) for g in groups)))
+        _legend(fig, axes, "; ".join(notes))
         fig.savefig(folder / "error_cdf.png", dpi=110)
         plt.close(fig)
 
