@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from tracklab.filters.core import kalman_update, symmetrise
-from tracklab.linalg import elementwise_products, jacobian, mm
+from tracklab.linalg import elementwise_products, expm, jacobian, mm, solve
 from tracklab.models import cv
 
 
@@ -54,3 +54,34 @@ def test_jacobian_equals_jacfwd():
 
     xs = np.random.default_rng(2).normal(size=(6, 4)) * [1e3, 10.0, 1e3, 10.0]
     np.testing.assert_allclose(jax.vmap(lambda x: jacobian(h, x))(xs), jax.vmap(jax.jacfwd(h))(xs), rtol=1e-14)
+
+
+@pytest.mark.parametrize("scale", [1e-3, 0.05, 1.0, 5.0])
+def test_expm_equals_the_eigendecomposition_under_vmap(scale):
+    """Symmetric matrices, whose exponential is V e^Λ Vᵀ (NumPy), over norms that need no squaring up
+    to several; and a non-normal upper-triangular 2 × 2 against its closed form."""
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(5, 6, 6)) * scale
+    S = (X + np.swapaxes(X, 1, 2)) / 2
+    lam, V = np.linalg.eigh(S)
+    want = np.einsum("bij,bj,bkj->bik", V, np.exp(lam), V)
+    np.testing.assert_allclose(jax.jit(jax.vmap(expm))(S), want, rtol=1e-12 * max(1.0, scale), atol=1e-15)
+    a, c, b = -0.3 * scale, 0.2 * scale, 5.0
+    T = np.array([[a, b], [0.0, c]])
+    closed = np.array([[np.exp(a), b * (np.exp(a) - np.exp(c)) / (a - c)], [0.0, np.exp(c)]])
+    np.testing.assert_allclose(expm(jnp.asarray(T)), closed, rtol=1e-12)
+
+
+def test_expm_beyond_its_squarings_is_nan():
+    assert np.isnan(np.asarray(expm(jnp.eye(3) * 1e4))).all()
+
+
+def test_solve_equals_numpy_on_transition_matrices():
+    """A transition over a short interval (the identity, small terms, one large coupling) under vmap."""
+    rng = np.random.default_rng(4)
+    A = np.eye(9) + rng.normal(size=(7, 9, 9)) * 0.05
+    A[:, 7, 1] = 20.0
+    B = rng.normal(size=(7, 9, 3))
+    np.testing.assert_allclose(jax.jit(jax.vmap(solve))(A, B), np.linalg.solve(A, B), rtol=1e-11, atol=1e-12)
+    np.testing.assert_allclose(jax.vmap(solve)(A, B[..., 0]), np.linalg.solve(A, B[..., :1])[..., 0], rtol=1e-11,
+                               atol=1e-12)

@@ -13,6 +13,7 @@ by element, so that every operation is on a run-length vector.
 from __future__ import annotations
 
 import contextlib
+import math
 import threading
 
 import jax
@@ -225,3 +226,42 @@ def spd_inverse(A):
     eye = jnp.eye(n, dtype=A.dtype)
     Linv = jnp.stack([_forward(L, eye[:, j]) for j in range(n)], axis=1)  # columns of L⁻¹
     return mm(Linv.T, Linv)
+
+
+def solve(A, B):
+    """A⁻¹ B for a small square A, by Gauss–Jordan elimination without pivoting (unrolled).
+
+    For matrices whose leading principal minors stay well away from zero, such as a state
+    transition over a short interval (the identity plus small terms): under ``vmap``,
+    ``jnp.linalg.solve`` is a LAPACK call per run. B is (n,) or (n, k).
+    """
+    vec = B.ndim == 1
+    n = A.shape[-1]
+    rows = [jnp.concatenate([A[i], B[i:i + 1] if vec else B[i]]) for i in range(n)]
+    for j in range(n):
+        pivot = rows[j] / rows[j][j]
+        rows = [pivot if i == j else rows[i] - rows[i][j] * pivot for i in range(n)]
+    out = jnp.stack([r[n:] for r in rows])
+    return out[:, 0] if vec else out
+
+
+def expm(A, degree=8, max_squarings=10):
+    """The matrix exponential of a small square A by scaling and squaring a Taylor polynomial.
+
+    A is scaled by 2⁻ˢ to a 1-norm θ at most where the polynomial of ``degree`` is exact to
+    double precision (θ^(degree+1)/(degree+1)! ≤ 10⁻¹⁶ relative; 0.068 for degree 8), the
+    polynomial is evaluated by Horner's rule and squared s times (s from the norm, at most
+    ``max_squarings``). Every step is a product (``mm``): under ``vmap``,
+    ``jax.scipy.linalg.expm`` evaluates every Padé degree its switch may pick and a LAPACK
+    solve per run. NaN where the norm needs more than ``max_squarings`` squarings.
+    """
+    n = A.shape[-1]
+    theta = math.exp((math.lgamma(degree + 2) - 16 * math.log(10)) / (degree + 1))
+    norm1 = jnp.max(jnp.sum(jnp.abs(A), axis=-2))
+    s = jnp.clip(jnp.ceil(jnp.log2(norm1 / theta)), 0, max_squarings)
+    X = A / 2.0**s
+    eye = jnp.eye(n, dtype=A.dtype)
+    # loops, not unrolled products: a few kernels to compile, whatever the degree
+    E = jax.lax.fori_loop(0, degree, lambda i, E: eye + mm(X, E) / (degree - i).astype(A.dtype), eye)  # Horner
+    E = jax.lax.fori_loop(0, max_squarings, lambda i, E: jnp.where(i < s, mm(E, E), E), E)
+    return jnp.where(norm1 <= theta * 2.0**max_squarings, E, jnp.nan)

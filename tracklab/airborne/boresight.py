@@ -36,6 +36,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from tracklab.linalg import mm, norm, sum_elements
+
 STATE = ("eps_e", "omega_e", "a_e", "eps_d", "omega_d", "a_d", "r", "rdot", "a_r")
 EPS = (0, 3)  # ε_e, ε_d
 OMEGA = (1, 4)
@@ -83,29 +85,34 @@ def observation_matrix(k):
     return jnp.zeros((4, 9)).at[jnp.arange(4), jnp.array(OBSERVED)].set(k)
 
 
+def _dot(a, b):
+    """a · b of two 3-vectors, as elementwise arithmetic (under ``vmap``, a batched dot is slow on CPU)."""
+    return sum_elements(a * b)
+
+
 def los_state(rel_p, rel_v, a_t, a_m, C):
     """The true 9-state from the relative geometry and the antenna axes C = [x_A y_A z_A] (columns).
 
     Also returns a_M's components (a_Me, a_Md, a_Mr), the model's known input.
     """
-    r = jnp.linalg.norm(rel_p)
+    r = norm(rel_p)
     u = rel_p / r
-    rdot = jnp.dot(u, rel_v)
+    rdot = _dot(u, rel_v)
     omega = jnp.cross(u, rel_v) / r
     x_a, y_a, z_a = C[:, 0], C[:, 1], C[:, 2]
-    ux, uy, uz = jnp.dot(u, x_a), jnp.dot(u, y_a), jnp.dot(u, z_a)
+    ux, uy, uz = _dot(u, x_a), _dot(u, y_a), _dot(u, z_a)
     eps_e, eps_d = jnp.arctan2(uy, ux), -jnp.arctan2(uz, ux)
     ua_t, ua_m = jnp.cross(u, a_t), jnp.cross(u, a_m)
-    x = jnp.stack([eps_e, jnp.dot(omega, z_a), jnp.dot(ua_t, z_a), eps_d, jnp.dot(omega, y_a), jnp.dot(ua_t, y_a),
-                   r, rdot, jnp.dot(u, a_t)])
-    return x, jnp.stack([jnp.dot(ua_m, z_a), jnp.dot(ua_m, y_a), jnp.dot(u, a_m)])
+    x = jnp.stack([eps_e, _dot(omega, z_a), _dot(ua_t, z_a), eps_d, _dot(omega, y_a), _dot(ua_t, y_a),
+                   r, rdot, _dot(u, a_t)])
+    return x, jnp.stack([_dot(ua_m, z_a), _dot(ua_m, y_a), _dot(u, a_m)])
 
 
 def los_frame(rel_p, up=(0.0, 0.0, 1.0)):
     """Antenna axes with the boresight on the LOS and y_A horizontal (zero pointing error)."""
-    u = rel_p / jnp.linalg.norm(rel_p)
+    u = rel_p / norm(rel_p)
     y = jnp.cross(jnp.asarray(up, u.dtype), u)
-    y = y / jnp.linalg.norm(y)
+    y = y / norm(y)
     return jnp.stack([u, y, jnp.cross(u, y)], -1)
 
 
@@ -117,7 +124,7 @@ def rotate(C, phi):
     s = jnp.where(small, 1.0 - theta2 / 6.0, jnp.sin(theta) / theta)
     c = jnp.where(small, 0.5 - theta2 / 24.0, (1.0 - jnp.cos(theta)) / jnp.maximum(theta2, 1e-300))
     K = jnp.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]], dtype=C.dtype)
-    return C @ (jnp.eye(3, dtype=C.dtype) + s * K + c * (K @ K))
+    return mm(C, jnp.eye(3, dtype=C.dtype) + s * K + c * mm(K, K))
 
 
 def antenna_motion(w0, w_cmd, dt, lag):

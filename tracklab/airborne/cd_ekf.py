@@ -3,7 +3,7 @@
 Between updates the mean and the covariance are integrated together by RK4
 at the radar's sample period (eqs. 10–11):
 
-    dx̂/dt = f(x̂, u),    dP/dt = F P + P Fᵀ + G Q Gᵀ,    F = ∂f/∂x at x̂ (``jax.jacfwd``)
+    dx̂/dt = f(x̂, u),    dP/dt = F P + P Fᵀ + G Q Gᵀ,    F = ∂f/∂x at x̂ (``jax.linearize``)
 
 with the antenna's rate between samples known exactly (its command is held
 and its lag is known, ``boresight.antenna_rate_at``). The predictions at
@@ -28,6 +28,7 @@ import jax.numpy as jnp
 from tracklab.airborne.boresight import EPS, OMEGA, ModelParams, antenna_motion, antenna_rate_at, drift, observation_matrix, process_noise
 from tracklab.airborne.tracker import Timing, Tracker
 from tracklab.filters.core import kalman_update, symmetrise
+from tracklab.linalg import mm, solve
 
 
 class CDParams(NamedTuple):
@@ -62,7 +63,10 @@ def mean_tick(x, u, w0, cmd, dt, lag, mp: ModelParams):
 
 
 def rk4_tick(x, P, w0, cmd, dt, lag, mp: ModelParams, u=None):
-    """Mean and covariance over one sample period (eqs. 10–11), RK4 on the pair; and ∂x(t+dt)/∂(x, u)."""
+    """Mean and covariance over one sample period (eqs. 10–11), RK4 on the pair.
+
+    F P is the drift's tangent map applied to P's columns (``jax.linearize``: only its nonzero
+    partial derivatives), and P Fᵀ its transpose, P being symmetric."""
     GQG = process_noise(mp)
     a_m = jnp.zeros(3, x.dtype)
     u = jnp.zeros(3, x.dtype) if u is None else u
@@ -70,14 +74,23 @@ def rk4_tick(x, P, w0, cmd, dt, lag, mp: ModelParams, u=None):
 
     def deriv(s, y):
         w = antenna_rate_at(w0, cmd, s, lag)
-        f = lambda z: drift(z, w, a_m, mp, u)
         x, P = y[:9], y[9:].reshape(9, 9)
-        F = jax.jacfwd(f)(x)
-        return jnp.concatenate([f(x), jnp.ravel(F @ P + P @ F.T + GQG)])
+        fx, f_lin = jax.linearize(lambda z: drift(z, w, a_m, mp, u), x)
+        FP = jax.vmap(f_lin, in_axes=1, out_axes=1)(P)
+        return jnp.concatenate([fx, jnp.ravel(FP + FP.T + GQG)])
 
     out = _rk4(deriv, pair, dt)
-    J = jax.jacfwd(lambda xu: mean_tick(xu[:9], xu[9:], w0, cmd, dt, lag, mp))(jnp.concatenate([x, u]))
-    return out[:9], symmetrise(out[9:].reshape(9, 9)), J
+    return out[:9], symmetrise(out[9:].reshape(9, 9))
+
+
+def transition_products(x, u, w0, cmd, dt, lag, mp: ModelParams, M, G=None):
+    """J_x M and J_x G + J_u for J = ∂x(t+dt)/∂(x, u), the mean tick's tangent map (``mean_tick``)
+    applied column by column; G None: the first alone."""
+    u = jnp.zeros(3, x.dtype) if u is None else u
+    _, lin = jax.linearize(lambda x, u: mean_tick(x, u, w0, cmd, dt, lag, mp), x, u)
+    columns = jax.vmap(lin, in_axes=1, out_axes=1)
+    M_next = columns(M, jnp.zeros((3, M.shape[1]), x.dtype))
+    return M_next, (None if G is None else columns(G, jnp.eye(3, dtype=x.dtype)))
 
 
 def command(x, lam):
@@ -87,20 +100,20 @@ def command(x, lam):
 
 def predict_period(x, P, w_a, cmd, timing: Timing, mp: ModelParams, u=None):
     """Predictions at the n samples of the next period, the covariance at its end, the averaged samples'
-    referral to the end (``CDState.refer``) and the end state's sensitivity to the mean levels u (9 × 3)."""
+    referral to the end (``CDState.refer``) and, with mean levels u (Moose), the end state's
+    sensitivity to them (9 × 3; None without)."""
 
     def step(carry, _):
         x, P, w, M, G = carry
-        x, P, J = rk4_tick(x, P, w, cmd, timing.dt, timing.lag, mp, u)
+        M, G = transition_products(x, u, w, cmd, timing.dt, timing.lag, mp, M, G)  # Φ(tᵢ, t_start)
+        x, P = rk4_tick(x, P, w, cmd, timing.dt, timing.lag, mp, u)
         w, _ = antenna_motion(w, cmd, timing.dt, timing.lag)
-        M = J[:, :9] @ M  # Φ(tᵢ, t_start)
-        G = J[:, :9] @ G + J[:, 9:]
         return (x, P, w, M, G), (x, M)
 
     eye = jnp.eye(x.shape[0], dtype=x.dtype)
-    init = (x, P, w_a, eye, jnp.zeros((9, 3), x.dtype))
+    init = (x, P, w_a, eye, None if u is None else jnp.zeros((9, 3), x.dtype))
     (_, P_end, _, M_end, G_end), (pred, Ms) = jax.lax.scan(step, init, None, length=timing.n)
-    refer = jnp.linalg.solve(M_end.T, jnp.mean(Ms, axis=0).T).T  # (1/n Σ Mᵢ) M_end⁻¹
+    refer = solve(M_end.T, jnp.mean(Ms, axis=0).T).T  # (1/n Σ Mᵢ) M_end⁻¹
     return pred, P_end, refer, G_end
 
 
@@ -125,7 +138,7 @@ def cd_ekf(timing: Timing) -> Tracker:
         k = params.k
         z_hat = jnp.concatenate([k[:2] * jnp.mean(s.pred[:, jnp.array(EPS)], axis=0), jnp.zeros(2, s.x.dtype)])
         nu = s.zsum / n - z_hat  # the range and velocity gates sat on the predictions
-        H = observation_matrix(k) @ s.refer
+        H = mm(observation_matrix(k), s.refer)
         x, P, _ = kalman_update(s.pred[-1], s.P_end, nu, H, jnp.diag(params.r) / n)
         return plan(params, x, P, w_a)
 

@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab.airborne.tracker import Timing, Tracker
+from tracklab.linalg import mm
 from tracklab.filters.alphabeta import kalata_alpha_beta, kalata_alpha_beta_gamma
 from tracklab.servo.transfer import TransferFunction, discretise
 
@@ -102,8 +103,8 @@ def classical(timing: Timing) -> Tracker:
 
     def sample(params, s, i, z):
         u = z[:2] / params.k[:2]
-        y = s.comp @ C[0] + Dd[0, 0] * u
-        comp = s.comp @ A.T + u[:, None] * B[:, 0]
+        y = mm(s.comp, C[0]) + Dd[0, 0] * u
+        comp = mm(s.comp, A.T) + u[:, None] * B[:, 0]
         return s._replace(comp=comp, cmd=1.5 * y - 0.5 * s.y, y=y, eps=u, zsum=s.zsum + z)
 
     def update(params, s, w_a):

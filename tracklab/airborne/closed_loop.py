@@ -16,11 +16,12 @@ is counted, not averaged. Every ``n`` ticks the tracker updates and the true
 the antenna by a fixed angle about its d axis at one instant (a large error
 the trackers must recover from).
 
-``engage`` is one run (pure, ``vmap`` over keys); ``sums`` reduces a batch of
-runs to per-period sums for streaming statistics, ``run_samples`` to each run's
-time averages over the report windows (the samples behind the intervals). Every random draw is made in
+``engage`` is one run (pure, ``vmap`` over keys); ``sums`` reduces a batch of runs to per-period sums for
+streaming statistics, ``run_samples`` to each run's time averages over the
+report windows (the samples behind the intervals). Every random draw is made in
 single precision and then cast, so a float32 run sees the very same target
-paths and noise as a float64 one.
+paths and noise as a float64 one. The small products are ``linalg.mm``: under
+``vmap`` on the CPU a batched 3 × 3 or 9 × 9 ``dot`` is a call per run.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ import numpy as np
 from tracklab.airborne.boresight import antenna_motion, los_frame, los_state, rotate
 from tracklab.airborne.engagement import Engagement, singer_block
 from tracklab.airborne.tracker import Timing, Tracker
-from tracklab.linalg import mahalanobis2
+from tracklab.linalg import mahalanobis2, mm
 
 MRAD = 1e-3  # rad: the unit of the reported angles
 SAMPLE_QUANTITIES = ("pointing", "pointing_estimate", "los_rate", "range", "range_rate", "nees")
@@ -102,7 +103,7 @@ def engage(eng: Engagement, tracker: Tracker, params, cfg: LoopConfig, sd0, key)
         C = rotate(C, jnp.stack([jnp.zeros((), dtype), turn[1], turn[0]]))
         if cfg.jolt_tick >= 0:  # static: runs without a jolt trace no rotation for it
             C = jnp.where(j == cfg.jolt_tick, rotate(C, jnp.asarray([0.0, cfg.jolt, 0.0], dtype)), C)
-        s = s @ phi.T + xi[:9].reshape(3, 3) @ L.T
+        s = mm(s, phi.T) + mm(xi[:9].reshape(3, 3), L.T)
         rel_p, rel_v, a_t, a_m = truth(eng, j * dt, s)
         x, _ = los_state(rel_p, rel_v, a_t, a_m, C)
         clean = jnp.stack([x[0], x[3], x[6] - gates[0], x[7] - gates[1]])

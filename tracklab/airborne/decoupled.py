@@ -9,7 +9,7 @@ angle channels take r̂ and ṙ̂ from the range channel,
 
 and the range channel takes the centripetal term r̂(ω̂_e² + ω̂_d²) as a known
 input to r̈. Each period the channels are discretised at the sample period by
-Van Loan's method (``jax.scipy.linalg.expm``), the antenna's turn over each
+Van Loan's method (``linalg.expm``, channel by channel), the antenna's turn over each
 sample (``boresight.antenna_motion``) entering the ε rows exactly.
 
 ``separate=True`` splits the range channel as a classical radar does: a range
@@ -24,12 +24,13 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jax.scipy.linalg import expm
+from jax.scipy.linalg import block_diag
 
 from tracklab.airborne.boresight import EPS, OMEGA, antenna_motion
 from tracklab.airborne.cd_ekf import command
 from tracklab.airborne.tracker import Timing, Tracker
 from tracklab.filters.core import kalman_update, symmetrise
+from tracklab.linalg import expm, mm
 
 
 class DecoupledState(NamedTuple):
@@ -42,32 +43,61 @@ class DecoupledState(NamedTuple):
     zsum: jax.Array
 
 
+class Channel(NamedTuple):
+    """One channel's model with the other channels' estimates frozen: ẋ_c = A x_c + b + w, E[w wᵀ] = Q_c."""
+
+    slots: tuple  # its components in the tracker's state
+    A: jax.Array
+    b: jax.Array | None  # None: no input
+    Qc: jax.Array
+
+
 def channel_matrices(x, mp, separate):
-    """(A, b, Q_c) of the channels with the coefficients frozen at x."""
-    m = 11 if separate else 9
+    """The channels with the coefficients frozen at x: elevation, azimuth (the same model), range and,
+    ``separate``, the velocity loop."""
     r, rdot = x[6], (x[9] if separate else x[7])
-    A = jnp.zeros((m, m), x.dtype)
-    for e, w, a in ((0, 1, 2), (3, 4, 5)):
-        A = A.at[e, w].set(1.0).at[w, w].set(-2.0 * rdot / r).at[w, a].set(1.0 / r).at[a, a].set(-1.0 / mp.tau)
-    A = A.at[6, 7].set(1.0).at[7, 8].set(1.0).at[8, 8].set(-1.0 / mp.tau_r)
+    z = jnp.zeros((), x.dtype)
+    one = jnp.ones((), x.dtype)
+    A_angle = jnp.stack([jnp.stack([z, one, z]), jnp.stack([z, -2.0 * rdot / r, 1.0 / r]), jnp.stack([z, z, -1.0 / mp.tau])])
+    Q_angle = jnp.diag(jnp.stack([z, z, 2.0 * mp.sigma_m**2 / mp.tau]))
+    qr = 2.0 * mp.sigma_r**2 / mp.tau_r
     centripetal = r * jnp.sum(x[jnp.array(OMEGA)] ** 2)
-    b = jnp.zeros(m, x.dtype).at[7].set(centripetal)
-    q = jnp.zeros(m, x.dtype).at[jnp.array([2, 5])].set(2.0 * mp.sigma_m**2 / mp.tau).at[8].set(2.0 * mp.sigma_r**2 / mp.tau_r)
+    A_range = jnp.stack([jnp.stack([z, one, z]), jnp.stack([z, z, one]), jnp.stack([z, z, -1.0 / mp.tau_r])])
+    out = [Channel((0, 1, 2), A_angle, None, Q_angle), Channel((3, 4, 5), A_angle, None, Q_angle),
+           Channel((6, 7, 8), A_range, jnp.stack([z, centripetal, z]), jnp.diag(jnp.stack([z, z, qr])))]
     if separate:
-        A = A.at[9, 10].set(1.0).at[10, 10].set(-1.0 / mp.tau_r)
-        b = b.at[9].set(centripetal)
-        q = q.at[10].set(2.0 * mp.sigma_r**2 / mp.tau_r)
-    return A, b, jnp.diag(q)
+        out.append(Channel((9, 10), jnp.stack([jnp.stack([z, one]), jnp.stack([z, -1.0 / mp.tau_r])]),
+                           jnp.stack([centripetal, z]), jnp.diag(jnp.stack([z, qr]))))
+    return out
 
 
-def van_loan(A, b, Qc, T):
-    """Φ, the constant input's response γ = ∫Φ b, and Q_d over T."""
-    m = A.shape[0]
-    M = jnp.zeros((2 * m, 2 * m), A.dtype).at[:m, :m].set(-A).at[:m, m:].set(Qc).at[m:, m:].set(A.T)
+def _van_loan(c: Channel, T):
+    """(Φ, γ = ∫Φ b, Q_d, Φ⁻¹) of one channel over T. Q_d is linear in Q_c, which is scaled to unit
+    size first, so that A·T alone sets the exponential's squarings; Φ⁻¹ = e^{−AT} is the exponential's
+    other diagonal block."""
+    k = c.A.shape[0]
+    scale = jnp.maximum(jnp.max(jnp.abs(c.Qc)), jnp.finfo(c.A.dtype).tiny)
+    M = jnp.zeros((2 * k, 2 * k), c.A.dtype).at[:k, :k].set(-c.A).at[:k, k:].set(c.Qc / scale).at[k:, k:].set(c.A.T)
     E = expm(M * T)
-    phi = E[m:, m:].T
-    Mb = jnp.zeros((m + 1, m + 1), A.dtype).at[:m, :m].set(A).at[:m, m].set(b)
-    return phi, expm(Mb * T)[:m, m], symmetrise(phi @ E[:m, m:])
+    phi = E[k:, k:].T
+    Qd = scale * symmetrise(mm(phi, E[:k, k:]))
+    if c.b is None:  # no input
+        return phi, jnp.zeros(k, c.A.dtype), Qd, E[:k, :k]
+    Mb = jnp.zeros((k + 1, k + 1), c.A.dtype).at[:k, :k].set(c.A).at[:k, k].set(c.b)
+    return phi, expm(Mb * T)[:k, k], Qd, E[:k, :k]
+
+
+def van_loan(channels, T):
+    """Φ, the constant input's response γ = ∫Φ b, Q_d and Φ⁻¹ over T of the whole state, block
+    diagonal: each channel discretised alone by Van Loan's method (a channel whose model is another's,
+    the azimuth's, is not computed twice). The channels' slots follow one another in the state."""
+    done = {}
+    for c in channels:
+        key = (id(c.A), id(c.b), id(c.Qc))
+        if key not in done:
+            done[key] = _van_loan(c, T)
+    phi, gam, Qd, phi_inv = zip(*(done[(id(c.A), id(c.b), id(c.Qc))] for c in channels))
+    return block_diag(*phi), jnp.concatenate(gam), block_diag(*Qd), block_diag(*phi_inv)
 
 
 def decoupled(timing: Timing, separate=False) -> Tracker:
@@ -78,20 +108,20 @@ def decoupled(timing: Timing, separate=False) -> Tracker:
 
     def plan(params, x, P, w_a):
         cmd = command(x, params.lam)
-        phi, gam, Qd = van_loan(*channel_matrices(x, params.model, separate), timing.dt)
+        phi, gam, Qd, phi_inv = van_loan(channel_matrices(x, params.model, separate), timing.dt)
 
         def step(carry, _):
             x, P, w = carry
             w_next, turn = antenna_motion(w, cmd, timing.dt, timing.lag)
-            x = phi @ x + gam
+            x = mm(phi, x) + gam
             x = x.at[jnp.array(EPS)].add(-turn)
-            return (x, symmetrise(phi @ P @ phi.T + Qd), w_next), x
+            return (x, symmetrise(mm(mm(phi, P), phi.T) + Qd), w_next), x
 
         (_, P_end, _), pred = jax.lax.scan(step, (x, P, w_a), None, length=n)
-        powers = [jnp.eye(m, dtype=x.dtype)]
-        for _ in range(n):
-            powers.append(phi @ powers[-1])
-        refer = jnp.linalg.solve(powers[-1].T, sum(powers[1:]).T / n).T
+        back = [jnp.eye(m, dtype=x.dtype)]  # Φ^{i−n}, i = n … 1
+        for _ in range(n - 1):
+            back.append(mm(back[-1], phi_inv))
+        refer = sum(back) / n
         return DecoupledState(x, P, pred, P_end, refer, cmd, jnp.zeros(4, x.dtype))
 
     def start(params, x0, P0):
@@ -112,7 +142,7 @@ def decoupled(timing: Timing, separate=False) -> Tracker:
         k = params.k
         H = jnp.zeros((4, m), s.x.dtype).at[jnp.arange(4), H_rows].set(k)
         z_hat = jnp.concatenate([k[:2] * jnp.mean(s.pred[:, jnp.array(EPS)], axis=0), jnp.zeros(2, s.x.dtype)])
-        x, P, _ = kalman_update(s.pred[-1], s.P_end, s.zsum / n - z_hat, H @ s.refer, jnp.diag(params.r) / n)
+        x, P, _ = kalman_update(s.pred[-1], s.P_end, s.zsum / n - z_hat, mm(H, s.refer), jnp.diag(params.r) / n)
         return plan(params, x, P, w_a)
 
     def estimate(s):

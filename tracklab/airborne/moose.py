@@ -34,7 +34,7 @@ from tracklab.airborne.boresight import EPS, observation_matrix
 from tracklab.airborne.cd_ekf import CDParams, command, predict_period
 from tracklab.airborne.tracker import Timing, Tracker
 from tracklab.filters.core import symmetrise
-from tracklab.linalg import spd_inverse
+from tracklab.linalg import mm, spd_inverse
 
 
 class MooseParams(NamedTuple):
@@ -62,7 +62,7 @@ def moose(timing: Timing) -> Tracker:
 
     def plan(params, x, P, w_a, prob):
         base = params.base
-        u = prob @ params.levels
+        u = mm(prob, params.levels)
         spread = jnp.sum(prob * (params.levels[None, :] - u[:, None]) ** 2, axis=1)
         cmd = command(x, base.lam)
         pred, P_end, refer, gamma = predict_period(x, P, w_a, cmd, timing, base.model, u)
@@ -86,32 +86,32 @@ def moose(timing: Timing) -> Tracker:
         N = params.levels.shape[0]
         z_hat = jnp.concatenate([k[:2] * jnp.mean(s.pred[:, jnp.array(EPS)], axis=0), jnp.zeros(2, s.x.dtype)])
         nu = s.zsum / n - z_hat
-        H = observation_matrix(k) @ s.refer
+        H = mm(observation_matrix(k), s.refer)
         R = jnp.diag(base.r) / n
         P = s.P_end
-        S = H @ P @ H.T + R
+        S = mm(mm(H, P), H.T) + R
         S_inv = spd_inverse(S)
-        K = P @ H.T @ S_inv
-        HG = H @ s.gamma  # (4, 3)
+        K = mm(mm(P, H.T), S_inv)
+        HG = mm(H, s.gamma)  # (4, 3)
         # 2. each channel's level likelihoods, factorised
         du = params.levels[None, :] - s.u[:, None]  # (3, N)
         nus = nu[None, None, :] - HG.T[:, None, :] * du[:, :, None]  # (3, N, 4)
-        loglik = -0.5 * jnp.einsum("cni,ij,cnj->cn", nus, S_inv, nus)
+        loglik = -0.5 * jnp.sum(mm(nus.reshape(-1, 4), S_inv).reshape(nus.shape) * nus, axis=-1)
         stay = params.p_stay
         T = stay * jnp.eye(N, dtype=nu.dtype) + (1.0 - stay) / (N - 1) * (1.0 - jnp.eye(N, dtype=nu.dtype))
-        prior = s.prob @ T
+        prior = mm(s.prob, T)
         post = prior * jnp.exp(loglik - jnp.max(loglik, axis=1, keepdims=True))
         prob = post / jnp.sum(post, axis=1, keepdims=True)
         # 3. move to the new merged levels, update, add the levels' spread
-        u_new = prob @ params.levels
-        shift = s.gamma @ (u_new - s.u)
+        u_new = mm(prob, params.levels)
+        shift = mm(s.gamma, u_new - s.u)
         x_pred = s.pred[-1] + shift
-        x = x_pred + K @ (nu - H @ shift)
-        IKH = jnp.eye(9, dtype=P.dtype) - K @ H
-        P = IKH @ P @ IKH.T + K @ R @ K.T
+        x = x_pred + mm(K, nu - mm(H, shift))
+        IKH = jnp.eye(9, dtype=P.dtype) - mm(K, H)
+        P = mm(mm(IKH, P), IKH.T) + mm(mm(K, R), K.T)
         var = jnp.sum(prob * (params.levels[None, :] - u_new[:, None]) ** 2, axis=1)
-        D = IKH @ s.gamma
-        P = symmetrise(P + (D * var) @ D.T)
+        D = mm(IKH, s.gamma)
+        P = symmetrise(P + mm(D * var, D.T))
         return plan(params, x, P, w_a, prob)
 
     def estimate(s):

@@ -82,22 +82,22 @@ class AirborneExperiment:
 
         return Timing(self.sample_dt, self.average, self.antenna_lag)
 
-    def default_chunk(self) -> int:
-        """Runs per chunk when the file does not say: 32 per device (each run is thousands of
-        radar samples); fixed by the structure, never by the run count."""
-        import jax
+    def default_chunk(self, runs=None) -> int:
+        """Runs per chunk when the file does not say: from the memory budget (``runner.budget_chunk``)
+        of a run's per-period outputs (12 values a period and tracker), no more than ``runs`` need."""
+        from tracklab.montecarlo import runner
 
-        return 32 * jax.device_count()
+        return runner.budget_chunk(self.steps * 12 * len(self.trackers) * 8.0, runs)
 
-    def structure(self, chunk=None):
+    def structure(self, chunk=None, runs=None):
         """What the compiled program depends on: timing, periods, jolt tick, Singer on/off, the
-        trackers' kinds and the chunk size."""
+        trackers' kinds and the chunk size (by default from the memory budget and ``runs``)."""
         from tracklab.airborne.world import AirborneStructure, TrackerSpec
 
         jolt_tick = int(round(self.disturbance[0] / self.sample_dt)) if self.disturbance is not None else -1
         trackers = tuple(TrackerSpec(tc.label, tc.kind, tc.range_velocity) for tc in self.trackers)
         return AirborneStructure(trackers, self.timing(), self.steps, jolt_tick, self.singer,
-                                 int(chunk or self.chunk or self.default_chunk()))
+                                 int(chunk or self.chunk or self.default_chunk(runs)))
 
     def params(self):
         """Every number of the experiment, as the compiled program's argument."""
@@ -241,7 +241,8 @@ class AirborneExperiment:
         target = target_precision or self.target_precision
         enough = None if target is None else (
             lambda sums, samples, done: precision_reached(samples, target, self.level, self.headline()))
-        return runner.run(world(self.structure(chunk)), self.params(), runs or self.runs,
+        runs = runs or self.runs
+        return runner.run(world(self.structure(chunk, runs)), self.params(), runs,
                           self.seed if seed is None else seed, precision=precision or self.precision, progress=progress,
                           enough=enough)
 
@@ -253,8 +254,8 @@ class AirborneExperiment:
     def memory_bytes(self, runs=None) -> float:
         """A lower bound: a chunk's per-period outputs (error, NEES, pointing, range: 12 values a
         run and period) and the per-period statistics on the host."""
-        chunk = self.structure().chunk
-        return chunk * self.steps * 12 * 8.0 + len(self.trackers) * self.steps * 16 * 8.0
+        chunk = self.structure(runs=runs or self.runs).chunk
+        return chunk * self.steps * 12 * len(self.trackers) * 8.0 + len(self.trackers) * self.steps * 16 * 8.0
 
     def check_memory(self, runs=None, limit=None):
         from tracklab.memory import check

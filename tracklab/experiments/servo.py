@@ -139,18 +139,18 @@ class ServoExperiment:
         """Servo ticks per run."""
         return self.frames * self.frame_ticks
 
-    def default_chunk(self) -> int:
-        """Runs per chunk when the file does not say: 16 per device (each run is tens of thousands
-        of servo ticks); fixed by the structure, never by the run count."""
-        import jax
+    def default_chunk(self, runs=None) -> int:
+        """Runs per chunk when the file does not say: from the memory budget (``runner.budget_chunk``)
+        of a run's per-tick values (4 a tick), no more than ``runs`` need."""
+        from tracklab.montecarlo import runner
 
-        return 16 * jax.device_count()
+        return runner.budget_chunk(self.ticks * 4 * 8.0, runs)
 
     def memory_bytes(self, runs=None) -> float:
         """The arrays a run holds: a chunk's per-tick values (the tracking error, its part after
         ``settle``, the harmonic fit and its residual), the fit's basis and pseudo-inverse and
         the masks (16 values a tick), and run 0's series."""
-        chunk = self.chunk or self.default_chunk()
+        chunk = self.chunk or self.default_chunk(runs or self.runs)
         return chunk * self.ticks * 4 * 8.0 + self.ticks * 16 * 8.0
 
     def check_memory(self, runs=None, limit=None):
@@ -176,9 +176,10 @@ class ServoExperiment:
         return run_into_folder(self, out, runs, max_memory, simulate,
                                lambda doc, tmp: write_servo_results(doc, tmp, figures))
 
-    def structure(self, chunk=None):
+    def structure(self, chunk=None, runs=None):
         """What the compiled program depends on: the timing, the target's kind, the cases' modes and
-        estimator kinds (a DEKF's network), and the chunk size."""
+        estimator kinds (a DEKF's network), and the chunk size (by default from the memory budget and
+        ``runs``)."""
         from tracklab.servo.world import CaseSpec, ServoStructure
 
         by = {e.label: e for e in self.estimators}
@@ -188,7 +189,7 @@ class ServoExperiment:
             kind = e.kind if e is not None else c.estimator  # "perfect" or None
             cases.append(CaseSpec(c.label, c.mode, kind, self.network(e) if kind == "dekf" else None))
         return ServoStructure(tuple(cases), self.frames, self.frame_ticks, self.frame_dt, self.delay,
-                              self.target["kind"], int(chunk or self.chunk or self.default_chunk()))
+                              self.target["kind"], int(chunk or self.chunk or self.default_chunk(runs)))
 
     def params(self, estimators: dict | None = None):
         """Every number of the experiment, as the compiled program's argument (``estimators``:
@@ -304,7 +305,7 @@ class ServoExperiment:
             if e.kind == "dekf" and e.train_steps > 0:
                 est, training[e.label] = self.train(e, self.build_estimator(e), progress)
                 trained[e.label] = est.params
-        structure = self.structure(chunk)
+        structure = self.structure(chunk, runs)
         max_runs = runs
         target = target_precision or self.target_precision
         headline = ("mean", 0)  # each run's maximum tracking error

@@ -194,6 +194,17 @@ _KEEP = 32
 compiles = 0  # programs compiled (or loaded from disk) by this process
 
 
+def budget_chunk(per_run_bytes: float, runs: int | None = None, budget: int = 2**28) -> int:
+    """Runs per chunk of a closed-loop world when the file does not say: as many as keep a chunk's
+    per-run arrays (``per_run_bytes`` each) within ``budget`` bytes (256 MiB), at most 128 per
+    device (larger shares run no faster on the CPU: each tracker's per-tick state leaves the cache;
+    ``benchmarks/bench_closed_loop.py``) and at least one, and no more than ``runs`` need (rounded
+    up to the devices): a closed-loop run is thousands of ticks, so dead runs padding a chunk cost."""
+    devices = jax.device_count()
+    chunk = int(np.clip(budget // max(per_run_bytes, 1.0), devices, 128 * devices))
+    return chunk if not runs else min(chunk, -(-int(runs) // devices) * devices)
+
+
 def share(world: World) -> int:
     """Runs of every chunk this process runs: the chunk split evenly over the processes (a
     chunk then holds ``share × processes`` runs, the last ones dead)."""
