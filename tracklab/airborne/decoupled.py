@@ -46,15 +46,14 @@ class DecoupledState(NamedTuple):
 class Channel(NamedTuple):
     """One channel's model with the other channels' estimates frozen: ẋ_c = A x_c + b + w, E[w wᵀ] = Q_c."""
 
-    slots: tuple  # its components in the tracker's state
     A: jax.Array
     b: jax.Array | None  # None: no input
     Qc: jax.Array
 
 
 def channel_matrices(x, mp, separate):
-    """The channels with the coefficients frozen at x: elevation, azimuth (the same model), range and,
-    ``separate``, the velocity loop."""
+    """The channels with the coefficients frozen at x, in the state's order: elevation, azimuth (the
+    same channel object), range and, ``separate``, the velocity loop."""
     r, rdot = x[6], (x[9] if separate else x[7])
     z = jnp.zeros((), x.dtype)
     one = jnp.ones((), x.dtype)
@@ -63,10 +62,10 @@ def channel_matrices(x, mp, separate):
     qr = 2.0 * mp.sigma_r**2 / mp.tau_r
     centripetal = r * jnp.sum(x[jnp.array(OMEGA)] ** 2)
     A_range = jnp.stack([jnp.stack([z, one, z]), jnp.stack([z, z, one]), jnp.stack([z, z, -1.0 / mp.tau_r])])
-    out = [Channel((0, 1, 2), A_angle, None, Q_angle), Channel((3, 4, 5), A_angle, None, Q_angle),
-           Channel((6, 7, 8), A_range, jnp.stack([z, centripetal, z]), jnp.diag(jnp.stack([z, z, qr])))]
+    angle = Channel(A_angle, None, Q_angle)
+    out = [angle, angle, Channel(A_range, jnp.stack([z, centripetal, z]), jnp.diag(jnp.stack([z, z, qr])))]
     if separate:
-        out.append(Channel((9, 10), jnp.stack([jnp.stack([z, one]), jnp.stack([z, -1.0 / mp.tau_r])]),
+        out.append(Channel(jnp.stack([jnp.stack([z, one]), jnp.stack([z, -1.0 / mp.tau_r])]),
                            jnp.stack([centripetal, z]), jnp.diag(jnp.stack([z, qr]))))
     return out
 
@@ -90,13 +89,12 @@ def _van_loan(c: Channel, T):
 def van_loan(channels, T):
     """Φ, the constant input's response γ = ∫Φ b, Q_d and Φ⁻¹ over T of the whole state, block
     diagonal: each channel discretised alone by Van Loan's method (a channel whose model is another's,
-    the azimuth's, is not computed twice). The channels' slots follow one another in the state."""
+    the azimuth's, is not computed twice). The channels follow one another in the state."""
     done = {}
     for c in channels:
-        key = (id(c.A), id(c.b), id(c.Qc))
-        if key not in done:
-            done[key] = _van_loan(c, T)
-    phi, gam, Qd, phi_inv = zip(*(done[(id(c.A), id(c.b), id(c.Qc))] for c in channels))
+        if id(c) not in done:
+            done[id(c)] = _van_loan(c, T)
+    phi, gam, Qd, phi_inv = zip(*(done[id(c)] for c in channels))
     return block_diag(*phi), jnp.concatenate(gam), block_diag(*Qd), block_diag(*phi_inv)
 
 

@@ -87,7 +87,13 @@ class AirborneExperiment:
         of a run's per-period outputs (12 values a period and tracker), no more than ``runs`` need."""
         from tracklab.montecarlo import runner
 
-        return runner.budget_chunk(self.steps * 12 * len(self.trackers) * 8.0, runs)
+        return runner.budget_chunk(self.run_bytes, runs)
+
+    @property
+    def run_bytes(self) -> float:
+        """A run's per-period outputs in a chunk: error, NEES, pointing, range (12 values a period
+        and tracker, 8 bytes each)."""
+        return self.steps * 12 * len(self.trackers) * 8.0
 
     def structure(self, chunk=None, runs=None):
         """What the compiled program depends on: timing, periods, jolt tick, Singer on/off, the
@@ -255,7 +261,7 @@ class AirborneExperiment:
         """A lower bound: a chunk's per-period outputs (error, NEES, pointing, range: 12 values a
         run and period) and the per-period statistics on the host."""
         chunk = self.structure(runs=runs or self.runs).chunk
-        return chunk * self.steps * 12 * len(self.trackers) * 8.0 + len(self.trackers) * self.steps * 16 * 8.0
+        return chunk * self.run_bytes + len(self.trackers) * self.steps * 16 * 8.0
 
     def check_memory(self, runs=None, limit=None):
         from tracklab.memory import check

@@ -144,14 +144,19 @@ class ServoExperiment:
         of a run's per-tick values (4 a tick), no more than ``runs`` need."""
         from tracklab.montecarlo import runner
 
-        return runner.budget_chunk(self.ticks * 4 * 8.0, runs)
+        return runner.budget_chunk(self.run_bytes, runs)
+
+    @property
+    def run_bytes(self) -> float:
+        """A run's per-tick values in a chunk (4 a tick, 8 bytes each)."""
+        return self.ticks * 4 * 8.0
 
     def memory_bytes(self, runs=None) -> float:
         """The arrays a run holds: a chunk's per-tick values (the tracking error, its part after
         ``settle``, the harmonic fit and its residual), the fit's basis and pseudo-inverse and
         the masks (16 values a tick), and run 0's series."""
         chunk = self.chunk or self.default_chunk(runs or self.runs)
-        return chunk * self.ticks * 4 * 8.0 + self.ticks * 16 * 8.0
+        return chunk * self.run_bytes + self.ticks * 16 * 8.0
 
     def check_memory(self, runs=None, limit=None):
         from tracklab.memory import check
