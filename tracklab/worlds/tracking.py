@@ -261,8 +261,12 @@ class _Lane:
 def run_errors(out, truth_k, pv, dtype) -> _RunErrors:
     """One run's errors at one step from a filter's output ``out`` (an ``Out``), the true state
     ``truth_k`` (2d,) in CV layout and ``pv``, the indices of [x, ẋ, y, ẏ, …] in its state."""
-    e = out.x[pv] - truth_k  # (2d,) CV layout
-    Pe = out.P[pv[:, None], pv[None, :]]
+    if np.array_equal(pv, np.arange(len(pv))):  # the state starts in CV layout: no gather
+        x, Pe = out.x[:len(pv)], out.P[:len(pv), :len(pv)]
+    else:  # elements picked one by one (static slices, which fuse with what uses them)
+        x = jnp.stack([out.x[i] for i in pv])
+        Pe = jnp.stack([jnp.stack([out.P[i, j] for j in pv]) for i in pv])
+    e = x - truth_k  # (2d,) CV layout
     nees = mahalanobis2(Pe, e)  # NaN when P is not positive definite
     bad = ~jnp.isfinite(nees + sum_elements(out.x))
     if out.nu is not None and out.S is not None:
@@ -275,7 +279,7 @@ def run_errors(out, truth_k, pv, dtype) -> _RunErrors:
     else:  # no innovation reported: no NIS (its columns are empty)
         valid, dof, nis, logdet_s = jnp.asarray(False), 0.0, 0.0, 0.0
     if out.x_pred is not None:
-        e_pred = out.x_pred[pv[0::2]] - truth_k[0::2]  # one-step prediction error of the position
+        e_pred = jnp.stack([out.x_pred[i] for i in pv[0::2]]) - truth_k[0::2]  # one-step prediction error of the position
     else:  # no prediction reported: its statistics are NaN, shown as missing
         e_pred = jnp.full((len(pv) // 2,), jnp.nan, dtype)
     # fixed dtypes, so that the scan's carry is known without tracing the step (_RunErrors.zeros)
@@ -606,19 +610,24 @@ def _chunk(structure: TrackingStructure):
                 new_carries.append((state, (per_run, w_k, first), bad_any, runmax))
             return (truth_k if (stream and scenario.per_run) else None, new_carries), out
 
-        lane_in = [(ln.present, jnp.asarray(ln.reports), jnp.asarray(ln.wmask)) for ln in lanes]
+        lanes_in = [(ln.present, jnp.asarray(ln.reports), jnp.asarray(ln.wmask)) for ln in lanes]
         if stream:
             src = (accel, meas_draws)
-        xs = (jnp.arange(T), t, src, z_views, lane_in)
-        (_, finals), out = jax.lax.scan(scan_step, (truth0 if (stream and scenario.per_run) else None, carries), xs)
+        # T + 1 iterations: iteration k adds up step k - 1's errors (held in the carry), so the
+        # statistics are written once, inside the loop (iteration 0 adds up nothing)
+        carry0 = (truth0 if (stream and scenario.per_run) else None, carries)
+        # iteration T (one past the last step) only adds up the last step's errors: its
+        # simulation and filter steps repeat step T - 1 and are not kept
+        again = lambda a: jnp.concatenate([a, a[-1:]])
+        xs = jax.tree_util.tree_map(again, (jnp.arange(T), t, src, z_views, lanes_in))
+        (_, finals), out = jax.lax.scan(scan_step, carry0, xs)
         out["_example"]["truth"] = jnp.concatenate([(truth0[0] if truth_batched else truth0)[None],
-                                                    out["_example"]["truth"]])
-        if not with_bound:
-            out["_info"] = jnp.zeros((T, d, d), dtype)
+                                                    out["_example"]["truth"][:T]])
+        out["_example"]["z"] = out["_example"]["z"][:T]
+        out["_info"] = out["_info"][:T] if with_bound else jnp.zeros((T, d, d), dtype)
         flags, values, oks = [], [], []
-        for i, (ln, (_, pending, bad_any, per_run_acc)) in enumerate(zip(lanes, finals)):
-            last, bad_any, (runmax, acc) = lane_stats(i, pending, bad_any, per_run_acc)  # the last step's sums
-            sums, maxima, first = (jnp.concatenate([a[1:], b[None]]) for a, b in zip(out[ln.label], last))
+        for i, (ln, (_, _, bad_any, (runmax, acc))) in enumerate(zip(lanes, finals)):
+            sums, maxima, first = (a[1:] for a in out[ln.label])
             out[ln.label] = {"sums": sums, "maxima": maxima, "example_x": first[:, :2 * d],
                              "example_var": first[:, 2 * d:]}  # cut by _unpack
             ok = live & ~exclude[i] & ~bad_any
