@@ -380,7 +380,6 @@ def _lane_sums(r: _RunErrors, ok, runmax, w_k, dtype):
     updf = (r.valid & ok).astype(dtype)
     a_pred = jnp.concatenate([jnp.abs(e_pred), norm(e_pred)[None]])  # (d + 1, B)
     runmax = jnp.where(w_k[:, None, None], jnp.maximum(runmax, a_pred[None]), runmax)
-    # one reduction for all sums and one for all maxima (each reduction is a kernel per step)
     add = {
         "count": okf[None],
         "sum_pos": ep,
@@ -405,9 +404,25 @@ def _lane_sums(r: _RunErrors, ok, runmax, w_k, dtype):
         "max_err_pos": norm(ep)[None],
         "max_err_vel": norm(ev)[None],
     }
-    sums = jnp.sum(jnp.concatenate([add[n] for n in _SUMS]), axis=-1)
-    maxima = jnp.max(jnp.where(ok, jnp.concatenate([top[n] for n in _MAXIMA]), -jnp.inf), axis=-1)
+    sums = _over_runs([add[n] for n in _SUMS], 0.0, jax.lax.add, dtype)
+    maxima = _over_runs([jnp.where(ok, top[n], -jnp.inf) for n in _MAXIMA], -jnp.inf, jax.lax.max, dtype)
     return sums, maxima, runmax
+
+
+def _over_runs(rows, init, op, dtype):
+    """``rows`` (each (k, B)) reduced over the runs by ``op``, concatenated: (Σk,). One variadic
+    reduction per row height, into which XLA fuses the arithmetic that makes the rows; a
+    reduction of their concatenation would first write every row out, a kernel each."""
+    by_height: dict = {}
+    for i, a in enumerate(rows):
+        by_height.setdefault(a.shape[0], []).append(i)
+    out = [None] * len(rows)
+    for idx in by_height.values():
+        reduced = jax.lax.reduce(tuple(rows[i] for i in idx), tuple(jnp.asarray(init, dtype) for _ in idx),
+                                 lambda a, b: tuple(op(x, y) for x, y in zip(a, b)), (1,))
+        for i, v in zip(idx, reduced):
+            out[i] = v
+    return jnp.concatenate(out)
 
 
 def _named(v, names, d):
