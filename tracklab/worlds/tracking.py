@@ -404,25 +404,34 @@ def _lane_sums(r: _RunErrors, ok, runmax, w_k, dtype):
         "max_err_pos": norm(ep)[None],
         "max_err_vel": norm(ev)[None],
     }
-    sums = _over_runs([add[n] for n in _SUMS], 0.0, jax.lax.add, dtype)
-    maxima = _over_runs([jnp.where(ok, top[n], -jnp.inf) for n in _MAXIMA], -jnp.inf, jax.lax.max, dtype)
+    sums = _sum_over_runs([add[n] for n in _SUMS])
+    maxima = jnp.max(jnp.where(ok, jnp.concatenate([top[n] for n in _MAXIMA]), -jnp.inf), axis=-1)
     return sums, maxima, runmax
 
 
-def _over_runs(rows, init, op, dtype):
-    """``rows`` (each (k, B)) reduced over the runs by ``op``, concatenated: (Σk,). One variadic
-    reduction per row height, into which XLA fuses the arithmetic that makes the rows; a
-    reduction of their concatenation would first write every row out, a kernel each."""
+@jax.custom_jvp
+def _sum_over_runs(rows):
+    """``rows`` (each (k, B)) summed over the runs, concatenated: (Σk,). One variadic reduction
+    per row height, into which XLA fuses the arithmetic that makes the rows: a reduction of
+    their concatenation would first write every row out, a kernel each. (A variadic reduction
+    has no derivative rule of its own: the tangents are summed row by row.)"""
     by_height: dict = {}
     for i, a in enumerate(rows):
         by_height.setdefault(a.shape[0], []).append(i)
     out = [None] * len(rows)
     for idx in by_height.values():
-        reduced = jax.lax.reduce(tuple(rows[i] for i in idx), tuple(jnp.asarray(init, dtype) for _ in idx),
-                                 lambda a, b: tuple(op(x, y) for x, y in zip(a, b)), (1,))
-        for i, v in zip(idx, reduced):
+        zeros = tuple(jnp.zeros((), rows[i].dtype) for i in idx)
+        summed = jax.lax.reduce(tuple(rows[i] for i in idx), zeros,
+                                lambda a, b: tuple(jax.lax.add(x, y) for x, y in zip(a, b)), (1,))
+        for i, v in zip(idx, summed):
             out[i] = v
     return jnp.concatenate(out)
+
+
+@_sum_over_runs.defjvp
+def _sum_over_runs_jvp(primals, tangents):
+    (rows,), (d_rows,) = primals, tangents
+    return _sum_over_runs(rows), jnp.concatenate([jnp.sum(t, axis=-1) for t in d_rows])
 
 
 def _named(v, names, d):
