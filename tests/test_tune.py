@@ -163,6 +163,47 @@ def test_tuned_kf_recovers_true_noise_from_innovations(tmp_path):
     assert np.all(np.abs(np.asarray(got["r"]) / 400.0 - 1) < 0.10), got
 
 
+_COMPILES = """
+import json, logging, sys
+import tracklab
+tracklab.configure()  # the device count from XLA_FLAGS
+import jax
+from tracklab.config import load_experiment
+from tracklab.tune import tune
+
+class Compiles(logging.Handler):
+    names = []
+    def emit(self, record):
+        msg = record.getMessage()
+        if msg.startswith("Compiling jit("):
+            self.names.append(msg[len("Compiling jit("):].split(")")[0])
+
+seen = Compiles()
+logging.getLogger("jax").addHandler(seen)
+with jax.log_compiles():
+    res = tune(load_experiment(sys.argv[1]), ["q", "r"], steps=3, lr=0.1, loss="nll", runs_per_step=16, eval_runs=16)
+print(json.dumps({"devices": jax.device_count(), "steps": len(res.history), "compiled": seen.names}))
+"""
+
+
+def test_tune_compiles_its_gradient_and_its_evaluation_once(tmp_path):
+    """On two devices, every step's parameters find the gradient program the first step compiled
+    (an update made of the program's outputs is placed on the devices, where they were, and
+    would compile it again), and the held-out evaluation after tuning finds the one before it."""
+    import os
+
+    script = tmp_path / "compiles.py"
+    script.write_text(_COMPILES)
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    done = subprocess.run([sys.executable, str(script), str(write(tmp_path, QR))], env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    doc = json.loads(done.stdout.strip().splitlines()[-1])
+    assert doc["devices"] == 2 and doc["steps"] == 3
+    assert doc["compiled"].count("total") == 1, doc  # the loss and its gradient
+    assert doc["compiled"].count("per_filter") == 1, doc  # the held-out losses, before and after
+
+
 def _cli(*args, cwd):
     return subprocess.run([sys.executable, "-m", "tracklab.cli", *map(str, args)], cwd=cwd, capture_output=True, text=True)
 
