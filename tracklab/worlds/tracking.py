@@ -638,10 +638,9 @@ def _chunk(structure: TrackingStructure):
         if stream:
             src = (accel, meas_draws)
         # T + 1 iterations: iteration k adds up step k - 1's errors (held in the carry), so the
-        # statistics are written once, inside the loop (iteration 0 adds up nothing)
+        # statistics are written once, inside the loop. Iteration 0 adds up nothing; iteration T
+        # reads step T - 1's inputs again, and its simulation and filter steps are not kept
         carry0 = (truth0 if (stream and scenario.per_run) else None, carries)
-        # iteration T (one past the last step) only adds up the last step's errors: its
-        # simulation and filter steps repeat step T - 1 and are not kept
         again = lambda a: jnp.concatenate([a, a[-1:]])
         xs = jax.tree_util.tree_map(again, (jnp.arange(T), t, src, z_views, lanes_in))
         (_, finals), out = jax.lax.scan(scan_step, carry0, xs)
