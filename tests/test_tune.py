@@ -172,7 +172,9 @@ from tracklab.config import load_experiment
 from tracklab.tune import tune
 
 class Compiles(logging.Handler):
-    names = []
+    def __init__(self):
+        super().__init__()
+        self.names = []
     def emit(self, record):
         msg = record.getMessage()
         if msg.startswith("Compiling jit("):

@@ -359,11 +359,10 @@ def _tune(exp, names, *, steps, lr, loss, runs_per_step, eval_runs, seed, labels
     value_and_grad = jax.jit(jax.value_and_grad(total, has_aux=True))
     held_out = jax.jit(obj.losses)
     opt = optax.adam(lr)
-    # the parameters go in as host arrays at every step: an update made of the program's outputs
-    # lives where they do (committed to the devices), and a compiled program is found again only
-    # for arguments placed as before
-    on_host = lambda tree: jax.tree_util.tree_map(np.asarray, tree)
-    theta = on_host(obj.theta0)
+    # the parameters go in as host arrays at every step (jax.device_get): an update made of the
+    # program's outputs lives where they do (committed to the devices), and a compiled program is
+    # found again only for arguments placed as before
+    theta = jax.device_get(obj.theta0)
     state = opt.init(theta)
     result = TuneResult(params={}, initial=_floats(obj.initial), loss=loss, runs_per_step=B, eval_runs=n_eval)
 
@@ -401,7 +400,7 @@ def _tune(exp, names, *, steps, lr, loss, runs_per_step, eval_runs, seed, labels
         if why:  # the step would leave what an experiment file accepts
             result.stopped = f"stopped after step {k}: the next step's {why}; kept the parameters of step {k}"
             break
-        theta, state = on_host(new_theta), new_state
+        theta, state = jax.device_get(new_theta), new_state
     result.params = _floats(obj.values(theta))
     result.eval_tuned = evaluate(theta)
     result.wall_s = time.perf_counter() - t0

@@ -258,15 +258,20 @@ class _Lane:
     wmask: np.ndarray  # (T, windows)
 
 
+def _pick(a, idx, axis=0):
+    """``a``'s entries ``idx`` (known at trace time) along ``axis`` by static slices, which fuse
+    with what reads them (indexing by an index array is a gather, a kernel of its own)."""
+    idx = [int(i) for i in idx]
+    if idx == list(range(idx[0], idx[0] + len(idx))):
+        return jax.lax.slice_in_dim(a, idx[0], idx[0] + len(idx), axis=axis)
+    return jnp.stack([jax.lax.index_in_dim(a, i, axis, keepdims=False) for i in idx], axis=axis)
+
+
 def run_errors(out, truth_k, pv, dtype) -> _RunErrors:
     """One run's errors at one step from a filter's output ``out`` (an ``Out``), the true state
     ``truth_k`` (2d,) in CV layout and ``pv``, the indices of [x, ẋ, y, ẏ, …] in its state."""
-    if np.array_equal(pv, np.arange(len(pv))):  # the state starts in CV layout: no gather
-        x, Pe = out.x[:len(pv)], out.P[:len(pv), :len(pv)]
-    else:  # elements picked one by one (static slices, which fuse with what uses them)
-        x = jnp.stack([out.x[i] for i in pv])
-        Pe = jnp.stack([jnp.stack([out.P[i, j] for j in pv]) for i in pv])
-    e = x - truth_k  # (2d,) CV layout
+    e = _pick(out.x, pv) - truth_k  # (2d,) CV layout
+    Pe = _pick(_pick(out.P, pv), pv, axis=1)
     nees = mahalanobis2(Pe, e)  # NaN when P is not positive definite
     bad = ~jnp.isfinite(nees + sum_elements(out.x))
     if out.nu is not None and out.S is not None:
@@ -279,7 +284,7 @@ def run_errors(out, truth_k, pv, dtype) -> _RunErrors:
     else:  # no innovation reported: no NIS (its columns are empty)
         valid, dof, nis, logdet_s = jnp.asarray(False), 0.0, 0.0, 0.0
     if out.x_pred is not None:
-        e_pred = jnp.stack([out.x_pred[i] for i in pv[0::2]]) - truth_k[0::2]  # one-step prediction error of the position
+        e_pred = _pick(out.x_pred, pv[0::2]) - truth_k[0::2]  # one-step prediction error of the position
     else:  # no prediction reported: its statistics are NaN, shown as missing
         e_pred = jnp.full((len(pv) // 2,), jnp.nan, dtype)
     # fixed dtypes, so that the scan's carry is known without tracing the step (_RunErrors.zeros)
