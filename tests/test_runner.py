@@ -161,3 +161,39 @@ def test_a_sensor_sigma_is_an_input_of_the_program(tmp_path):
     assert alone.compile_s > 0
     for k, v in alone.sums["EKF"].items():
         np.testing.assert_allclose(res_b.sums["EKF"][k], v, rtol=1e-13, atol=1e-12, err_msg=k)
+
+
+def _every_kind(order):
+    filters = {
+        "EKF": 'kind = "ekf"',
+        "alpha-beta": 'kind = "alpha_beta"\nconversion = "unbiased"\nsigma_w = [50.0, 50.0]',
+        "CMKF": 'kind = "cmkf"\ndebias = "unbiased"',
+        "UKF": 'kind = "ukf"',
+        "IMM": 'kind = "imm"\nq = [1.0, 1.0, 1.0]\nq_turn = 1e-5\np_stay = 0.95\nturn_rate_sigma = 0.05',
+        "STF": 'kind = "stf"\nrho = 0.95\nb = 1.0',
+        "Polar KF": 'kind = "polar_kf"',
+    }
+    head = TRACKING.split("[[filter]]")[0].replace('sigma_angle = 0.004', 'sigma_angle = 0.004\np_detect = 0.8')
+    return head + "".join(f'\n[[filter]]\nlabel = "{label}"\n{filters[label]}\n' for label in order)
+
+
+def test_a_filters_statistics_do_not_depend_on_the_program_around_it(tmp_path):
+    """Filters whose errors have the same shapes share their error and statistics kernels, a filter
+    alone makes them inside its own step, and a large call writes small products element by
+    element: every arrangement gives each filter the same sums (a mixed-up lane is off by far more)."""
+    from tracklab.worlds import tracking
+
+    order = ["EKF", "alpha-beta", "CMKF", "UKF", "IMM", "STF", "Polar KF"]
+    exp = load_experiment(_write(tmp_path, "kinds", _every_kind(order)))
+    assert not exp.structure(runs=exp.runs).elementwise and exp.structure(runs=10**6).elementwise
+
+    def sums(exp, elementwise):
+        out = tracking.run(exp.structure(elementwise=elementwise), exp.params(), exp.runs, exp.seed).sums
+        return {f"{lab}/{k}": np.asarray(v, float) for lab, d in out.items() for k, v in d.items()}
+
+    ref = sums(exp, False)
+    assert ref["EKF/diverged"] == 0 and np.ptp(ref["EKF/count_nis"]) > 0  # missed detections reached the runs
+    _same(sums(exp, True), ref, "element by element")
+    _same(sums(load_experiment(_write(tmp_path, "reversed", _every_kind(order[::-1]))), False), ref, "reversed")
+    alone = sums(load_experiment(_write(tmp_path, "alone", _every_kind(["EKF"]))), False)
+    _same(alone, {k: v for k, v in ref.items() if k.startswith("EKF/")}, "alone")

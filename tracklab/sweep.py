@@ -152,7 +152,7 @@ def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=
     names = [a.name for a in axes]
     P = len(points)
     chunk, block = _call_shape(exp, P, runs, chunk, block_points)
-    structure = exp.structure(chunk)
+    structure = exp.structure(chunk, runs * block)  # a block's points run on the same runs, in one program
     world = exp.world(structure)
     n_blocks = -(-P // block)
     stats, compile_s = [], 0.0

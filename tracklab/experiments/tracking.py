@@ -75,13 +75,17 @@ class Experiment:
         """(view function or None, measurement model) of what a filter sees."""
         return self.declared(fc).sees(self.sensor)
 
-    def structure(self, chunk=None, elementwise=True):
+    def structure(self, chunk=None, runs=None, elementwise=None):
         """What the compiled program depends on: the filters' kinds, models, options and views,
-        the report windows and the chunk size (never the run count, nor any number)."""
-        from tracklab.worlds.tracking import TrackingStructure, default_chunk, windows_of
+        the report windows, the chunk size and, from the size of the call (``runs``, times the
+        grid points of a sweep), whether small products are written element by element
+        (``tracking.products_elementwise``); never the run count itself, nor any number."""
+        from tracklab.worlds.tracking import TrackingStructure, default_chunk, products_elementwise, windows_of
 
         lanes = tuple(self.declared(fc) for fc in self.filters)
         chunk = int(chunk or self.chunk or default_chunk(self.scenario, self.sensor))
+        if elementwise is None:
+            elementwise = runs is None or products_elementwise(int(runs) * self.steps)
         return TrackingStructure(lanes, windows_of(self.pred_windows), chunk, elementwise)
 
     def params(self):
@@ -157,7 +161,8 @@ class Experiment:
         from tracklab.worlds import tracking
 
         target = target_precision or self.target_precision
-        return tracking.run(self.structure(chunk), self.params(), runs or self.runs, self.seed if seed is None else seed,
+        runs = runs or self.runs
+        return tracking.run(self.structure(chunk, runs), self.params(), runs, self.seed if seed is None else seed,
                             progress=progress, precision=precision or self.precision, target=target, level=self.level)
 
     def memory_bytes(self, runs=None, chunk=None) -> float:
