@@ -83,7 +83,7 @@ class Experiment:
         from tracklab.worlds.tracking import TrackingStructure, default_chunk, products_elementwise, windows_of
 
         lanes = tuple(self.declared(fc) for fc in self.filters)
-        chunk = int(chunk or self.chunk or default_chunk(self.scenario, self.sensor))
+        chunk = int(chunk or self.chunk or default_chunk(self.scenario, self.sensor, runs=runs))
         if elementwise is None:
             elementwise = runs is None or products_elementwise(int(runs) * self.steps)
         return TrackingStructure(lanes, windows_of(self.pred_windows), chunk, elementwise)
@@ -168,7 +168,7 @@ class Experiment:
     def memory_bytes(self, runs=None, chunk=None) -> float:
         """A lower bound on the bytes a run needs: one chunk's random draws (float32) for every
         step, and each filter's per-step statistics on the host."""
-        chunk = self.structure(chunk).chunk
+        chunk = self.structure(chunk, runs or self.runs).chunk
         width = 2 * self.dim + self.sensor.m
         return chunk * self.steps * width * 4.0 + len(self.filters) * self.steps * 64 * 8.0
 

@@ -869,14 +869,20 @@ def unpack(out, d):
     return res
 
 
-def default_chunk(scenario, sensor, budget=2**28) -> int:
+def default_chunk(scenario, sensor, budget=2**28, runs=None) -> int:
     """Runs per chunk when the experiment does not say: 1 000 per device (with several filters
     in the scan, larger shares run slower on the CPU: their states no longer stay in cache),
     fewer if a chunk's per-step arrays (truth and measurements of every run and step, 8 bytes
-    a value) would pass ``budget`` bytes (256 MiB); at least 64. It depends on the structure
-    alone, never on the run count: any number of runs uses the same compiled program."""
+    a value) would pass ``budget`` bytes (256 MiB); at least 64. No more than ``runs`` need,
+    rounded up to a power of two per device (every run of a chunk is computed, live or not), so
+    that nearby run counts, and any count from 1 000 per device up, share one compiled program."""
+    devices = jax.device_count()
     width = 2 * scenario.dim + sensor.m
-    return int(np.clip(budget // (8 * scenario.steps * width), 64, 1000 * jax.device_count()))
+    chunk = int(np.clip(budget // (8 * scenario.steps * width), 64, 1000 * devices))
+    if runs:
+        per_device = -(-int(runs) // devices)
+        chunk = min(chunk, devices * (1 << (per_device - 1).bit_length()))
+    return chunk
 
 
 def run(structure: TrackingStructure, params: TrackingParams, runs: int, key, *, progress=None,
@@ -949,7 +955,7 @@ def monte_carlo(
     """
     if not isinstance(sensor, SensorSuite):
         sensor = SensorSuite((sensor,))
-    structure = TrackingStructure(tuple(specs), windows_of(windows), int(chunk or default_chunk(scenario, sensor)),
+    structure = TrackingStructure(tuple(specs), windows_of(windows), int(chunk or default_chunk(scenario, sensor, runs=runs)),
                                   products_elementwise(runs * scenario.steps))
     filter_params = list(params) if params is not None else [s.filter.params for s in specs]
     p = TrackingParams(scenario, sensor, np.asarray(P0_cv, float), 0.0, filter_params)
