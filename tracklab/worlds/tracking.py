@@ -683,7 +683,7 @@ def _chunk(structure: TrackingStructure):
             stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *inputs)
             per_run = jax.vmap(lambda a: errors_of(a, dtype), in_axes=(err_axes[g[0]],), out_axes=-1)
             with elementwise_products(per_run_state[g[0]]):
-                return _over_lanes(per_run)(stacked)
+                return jax.vmap(per_run)(stacked)
 
         def group_stats(g, pending, w_k, bad_any, per_run_acc):
             r, first = pending
