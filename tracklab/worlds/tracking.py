@@ -191,6 +191,11 @@ def with_report_window(masks: dict, steps: int) -> dict:
     return {REPORT_WINDOW: np.asarray(report, bool)} | masks
 
 
+def _window_mask(windows: dict) -> np.ndarray:
+    """(steps, windows) bools: whether each step is in each of ``windows`` (``with_report_window``'s), in order."""
+    return np.stack([np.asarray(m, bool) for m in windows.values()], axis=1)
+
+
 def windows_of(masks: dict | None) -> tuple:
     """Named step masks as a hashable structure field."""
     return tuple((name, tuple(bool(b) for b in np.asarray(m))) for name, m in (masks or {}).items())
@@ -256,8 +261,6 @@ class _Lane:
     pattern: np.ndarray  # (T, m) which components of the filter's view are reported at each step
     present: Any  # (T, m) pattern as an array when it is the same in every run, else None
     reports: np.ndarray  # (T,) steps with some component reported
-    names: list  # prediction-error windows
-    wmask: np.ndarray  # (T, windows)
 
 
 def _pick(a, idx, axis=0):
@@ -323,15 +326,13 @@ def run_errors(out, truth_k, pv, dtype) -> _RunErrors:
     return errors_of(error_inputs(out, truth_k, pv, dtype), dtype)
 
 
-def _lane(label, real: Realised, params, P0_cv, pattern, detect_all, windows, dtype) -> _Lane:
+def _lane(label, real: Realised, params, P0_cv, pattern, detect_all, dtype) -> _Lane:
     """Set up one filter for the chunk's scan (``pattern``: the report pattern (T, m) of what it sees)."""
     flt = real.filter
     T = pattern.shape[0]
     pv = cv_index(real.model)
     reports = pattern.any(axis=-1)
     coast = flt.coast if (flt.coast is not None and not reports.all()) else None
-    names = list(windows or {})
-    wmask = (np.stack([np.asarray(windows[n], bool) for n in names], axis=1) if names else np.zeros((T, 0), bool))
 
     def init(prior_r):
         x0, P0 = real.model.embed(prior_r, P0_cv, real.prior_extra_var)
@@ -349,7 +350,7 @@ def _lane(label, real: Realised, params, P0_cv, pattern, detect_all, windows, dt
         return like(new, state), error_inputs(out, truth_k, pv, dtype)
 
     present = jnp.asarray(pattern) if detect_all else None
-    return _Lane(label, init, body, real.view, pattern, present, reports, names, wmask)
+    return _Lane(label, init, body, real.view, pattern, present, reports)
 
 
 def _view_pattern(view, pattern, dtype):
@@ -519,7 +520,7 @@ def _tainted(fn, args, flags):
 
 
 def _run_dependence(init, body, prior, z_k, truth_k, fixed, may_share):
-    """How a filter's step depends on the run: (per leaf of its state, whether it is the same in
+    """How a filter's step depends on the run: (for its state, a pytree of whether each leaf is the same in
     every run, i.e. depends neither on a run's prior mean nor on its measurements: a linear KF's
     covariance when the report pattern is the same in every run, looked for only when
     ``may_share``; per leaf of its error inputs, whether it may differ between runs; the error
@@ -543,7 +544,8 @@ def _run_dependence(init, body, prior, z_k, truth_k, fixed, may_share):
         if new == state_flags:
             break
         state_flags = new
-    return [not f for f in state_flags], out[n_state:], inputs
+    shared = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(state), [not f for f in state_flags])
+    return shared, out[n_state:], inputs
 
 
 def _with_errors(body, dtype):
@@ -554,20 +556,6 @@ def _with_errors(body, dtype):
         return state, errors_of(inputs, dtype)
 
     return step
-
-
-def _over_lanes(fn):
-    """``fn`` mapped over a leading lanes axis of all its arguments and results: ``vmap``, or for
-    a single lane ``fn`` itself (the same program as a filter alone, not a reduction over one
-    more axis)."""
-
-    def mapped(*args):
-        if jax.tree_util.tree_leaves(args)[0].shape[0] > 1:
-            return jax.vmap(fn)(*args)
-        one = fn(*jax.tree_util.tree_map(lambda a: a[0], args))
-        return jax.tree_util.tree_map(lambda a: a[None], one)
-
-    return mapped
 
 
 def _streams(scenario, views) -> bool:
@@ -591,6 +579,7 @@ def _chunk(structure: TrackingStructure):
         scenario, sensor = params.scenario, params.sensor
         d, T, dt = scenario.dim, scenario.steps, scenario.dt
         windows = with_report_window(structure.window_masks(), T)
+        names = list(windows)  # the report window, then the prediction-error windows
         lengths = _accumulated_lengths(d, windows)
         n_acc = len(lengths)
         P0_cv = params.P0
@@ -627,8 +616,7 @@ def _chunk(structure: TrackingStructure):
         lanes = []
         for f, p, view in zip(structure.filters, params.filters, views):
             real = f.realise(scenario, sensor, p, params.prior_extra_var)
-            lanes.append(_lane(f.label, real, p, P0_cv, _view_pattern(view, pattern, dtype), detect_all, windows,
-                               dtype))
+            lanes.append(_lane(f.label, real, p, P0_cv, _view_pattern(view, pattern, dtype), detect_all, dtype))
         z_views = []
         if not stream:  # a view of the whole sequence per run, time-major
             z_views = [z_all if ln.view is None else jax.vmap(ln.view, in_axes=1, out_axes=1)(z_all)
@@ -641,11 +629,10 @@ def _chunk(structure: TrackingStructure):
             z_ex, truth_ex = jnp.zeros((m_f,), dtype), jnp.zeros((2 * d,), dtype)
             shared, varies, inputs = _run_dependence(ln.init, ln.body, prior[0], z_ex, truth_ex, fixed,
                                                      may_share=ln.present is not None)
-            treedef = jax.tree_util.tree_structure(jax.eval_shape(ln.init, prior[0]))
-            state_axes.append(jax.tree_util.tree_unflatten(treedef, [None if s else 0 for s in shared]))
+            state_axes.append(jax.tree_util.tree_map(lambda s: None if s else 0, shared))
             states0.append(jax.vmap(ln.init, out_axes=state_axes[-1])(prior))
             # products element by element where the filter's state is carried per run (linalg.elementwise_products)
-            per_run_state.append(elementwise and not all(shared))
+            per_run_state.append(elementwise and not all(jax.tree_util.tree_leaves(shared)))
             # the error inputs that differ between runs carry the runs last; the others (a shared
             # covariance's Pe and S) once
             in_tree = jax.tree_util.tree_structure(inputs)
@@ -663,40 +650,40 @@ def _chunk(structure: TrackingStructure):
         steps = [None] * len(lanes)
         for g in groups:
             for i in g:
-                body, out_axes = (_with_errors(lanes[i].body, dtype), -1) if len(g) == 1 else (lanes[i].body, err_axes[i])
+                alone = len(g) == 1
+                body, out_axes = (_with_errors(lanes[i].body, dtype), -1) if alone else (lanes[i].body, err_axes[i])
                 steps[i] = jax.vmap(body, in_axes=(state_axes[i], (0, 0 if truth_batched else None, None, None, None)),
                                     out_axes=(state_axes[i], out_axes))
-        names = lanes[0].names if lanes else []
         carries = []
         for g in groups:
             L = len(g)
-            nothing = (jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (L,) + a.shape), _RunErrors.zeros(d, B, dtype)),
-                       jnp.zeros((L, 4 * d), dtype))
-            carries.append((tuple(states0[i] for i in g), jnp.zeros((len(names),), bool), nothing,
-                            jnp.zeros((L, B), bool), (jnp.zeros((L, len(names), d + 1, B), dtype),
-                                                      jnp.zeros((L, n_acc, B), dtype))))
+            no_errors = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (L,) + a.shape), _RunErrors.zeros(d, B, dtype))
+            nothing = (no_errors, jnp.zeros((L, 4 * d), dtype))
+            carries.append((tuple(states0[i] for i in g), nothing, jnp.zeros((L, B), bool),
+                            (jnp.zeros((L, len(names), d + 1, B), dtype), jnp.zeros((L, n_acc, B), dtype))))
 
-        def group_errors(g, inputs):
-            """The errors (lanes, …, runs) of a group's filters from their error inputs."""
+        def group_errors(g, outs):
+            """The errors (lanes, …, runs) of a group's filters from their steps' outputs: their
+            error inputs, or for a filter alone the errors it made in its step."""
             if len(g) == 1:
-                return jax.tree_util.tree_map(lambda a: a[None], inputs[0])
-            stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *inputs)
+                return jax.tree_util.tree_map(lambda a: a[None], outs[0])
+            stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *outs)
             per_run = jax.vmap(lambda a: errors_of(a, dtype), in_axes=(err_axes[g[0]],), out_axes=-1)
             with elementwise_products(per_run_state[g[0]]):
                 return jax.vmap(per_run)(stacked)
 
-        def group_stats(g, pending, w_k, bad_any, per_run_acc):
+        def group_stats(g, pending, w_k, bad_any, per_run_acc):  # w_k: the step before's windows
             r, first = pending
             runmax, acc = per_run_acc
             bad_any = bad_any | r.bad
             ok = live & ~_pick(exclude, g) & ~bad_any
-            sums, maxima, runmax = _over_lanes(lambda r, ok, m: _lane_sums(r, ok, m, w_k, dtype))(r, ok, runmax)
-            acc = acc + _over_lanes(lambda r: _run_samples(r, w_k.astype(dtype)))(r)
+            sums, maxima, runmax = jax.vmap(lambda r, ok, m: _lane_sums(r, ok, m, w_k, dtype))(r, ok, runmax)
+            acc = acc + jax.vmap(lambda r: _run_samples(r, w_k.astype(dtype)))(r)
             return (sums, maxima, first), bad_any, (runmax, acc)
 
         def scan_step(carry, inp):
-            truth_prev, group_carries = carry
-            k, t_k, src_k, zv_k, lane_in = inp
+            truth_prev, w_prev, group_carries = carry
+            k, t_k, src_k, zv_k, lane_in, w_k = inp
             if not stream:
                 truth_k, z_k = src_k
             else:
@@ -716,51 +703,52 @@ def _chunk(structure: TrackingStructure):
                     info = info + reports_by_sensor[k, j] * I
                 out["_info"] = info
             new_carries = []
-            for g, (states, w_k, pending, bad_any, per_run_acc) in zip(groups, group_carries):
+            for g, (states, pending, bad_any, per_run_acc) in zip(groups, group_carries):
                 # the sums of the step before, from its per-run errors held in the carry: a loop
                 # variable is computed once, where XLA would otherwise recompute the filter's
                 # arithmetic inside every reduction that reads it
-                (sums, maxima, first), bad_any, per_run_acc = group_stats(g, pending, w_k, bad_any, per_run_acc)
+                (sums, maxima, first), bad_any, per_run_acc = group_stats(g, pending, w_prev, bad_any, per_run_acc)
                 for j, i in enumerate(g):
                     out[lanes[i].label] = (sums[j], maxima[j], first[j])
-                new_states, inputs = [], []
+                new_states, outs = [], []
                 for i, state in zip(g, states):
-                    present_k, reports_k, _ = lane_in[i]
+                    present_k, reports_k = lane_in[i]
                     z_f = zv_k[i] if not stream else (z_k if lanes[i].view is None else lanes[i].view(z_k))
                     with elementwise_products(per_run_state[i]):
-                        state, inputs_i = steps[i](state, (z_f, truth_k, t_k, present_k, reports_k))
+                        state, out_i = steps[i](state, (z_f, truth_k, t_k, present_k, reports_k))
                     new_states.append(state)
-                    inputs.append(inputs_i)
-                r = group_errors(g, inputs)
+                    outs.append(out_i)
+                r = group_errors(g, outs)
                 x_first = r.e[:, :, 0] + (truth_k[0] if truth_batched else truth_k)  # run 0's estimate
                 first = jnp.concatenate([x_first, r.var[:, :, 0]], axis=1)  # and its variances
-                new_carries.append((tuple(new_states), lane_in[g[0]][2], (r, first), bad_any, per_run_acc))
-            return (truth_k if (stream and scenario.per_run) else None, new_carries), out
+                new_carries.append((tuple(new_states), (r, first), bad_any, per_run_acc))
+            return (truth_k if (stream and scenario.per_run) else None, w_k, new_carries), out
 
-        lanes_in = [(ln.present, jnp.asarray(ln.reports), jnp.asarray(ln.wmask)) for ln in lanes]
+        lanes_in = [(ln.present, jnp.asarray(ln.reports)) for ln in lanes]
         if stream:
             src = (accel, meas_draws)
         # T + 1 iterations: iteration k adds up step k - 1's errors (held in the carry), so the
         # statistics are written once, inside the loop. Iteration 0 adds up nothing; iteration T
         # reads step T - 1's inputs again, and its simulation and filter steps are not kept
-        carry0 = (truth0 if (stream and scenario.per_run) else None, carries)
+        carry0 = (truth0 if (stream and scenario.per_run) else None, jnp.zeros((len(names),), bool), carries)
         again = lambda a: jnp.concatenate([a, a[-1:]])
-        xs = jax.tree_util.tree_map(again, (jnp.arange(T), t, src, z_views, lanes_in))
-        (_, finals), out = jax.lax.scan(scan_step, carry0, xs)
+        w_masks = jnp.asarray(_window_mask(windows))  # (T, windows)
+        xs = jax.tree_util.tree_map(again, (jnp.arange(T), t, src, z_views, lanes_in, w_masks))
+        (_, _, finals), out = jax.lax.scan(scan_step, carry0, xs)
         out["_example"]["truth"] = jnp.concatenate([(truth0[0] if truth_batched else truth0)[None],
                                                     out["_example"]["truth"][:T]])
         out["_example"]["z"] = out["_example"]["z"][:T]
         out["_info"] = out["_info"][:T] if with_bound else jnp.zeros((T, d, d), dtype)
         n = len(lanes)
         flags, values, oks = [None] * n, [None] * n, [None] * n
-        for g, (_, _, _, bad_any, (runmax, acc)) in zip(groups, finals):
+        for g, (_, _, bad_any, (runmax, acc)) in zip(groups, finals):
             for j, i in enumerate(g):
                 ln = lanes[i]
                 sums, maxima, first = (a[1:] for a in out[ln.label])
                 out[ln.label] = {"sums": sums, "maxima": maxima, "example_x": first[:, :2 * d],
                                  "example_var": first[:, 2 * d:]}  # cut by _unpack
                 ok = live & ~exclude[i] & ~bad_any[j]
-                for w, name in enumerate(ln.names):  # sum over runs of each run's largest |error| (per axis, then norm)
+                for w, name in enumerate(names):  # sum over runs of each run's largest |error| (per axis, then norm)
                     out[ln.label][f"runmax_pred@{name}"] = jnp.sum(jnp.where(ok, runmax[j, w], 0.0), axis=-1)
                 out[ln.label]["diverged"] = jnp.sum((live & bad_any[j]).astype(dtype))
                 flags[i] = live & bad_any[j]
@@ -790,8 +778,7 @@ def recorded_sums(out, truth, layout, windows: dict | None = None) -> dict:
     d = len(pv) // 2
     windows = with_report_window(windows or {}, T)
     names = list(windows)
-    wmask = jnp.asarray(np.stack([np.asarray(windows[n], bool) for n in names], axis=1) if names
-                        else np.zeros((T, 0), bool))
+    wmask = jnp.asarray(_window_mask(windows))
     xs = (jax.tree_util.tree_map(lambda a: jnp.swapaxes(jnp.asarray(a), 0, 1), out), jnp.swapaxes(truth, 0, 1), wmask)
     errors = jax.vmap(lambda o, t: run_errors(o, t, pv, dtype), out_axes=-1)  # over the runs, runs last
 
@@ -873,7 +860,7 @@ def default_chunk(scenario, sensor, budget=2**28, runs=None) -> int:
     """Runs per chunk when the experiment does not say: 1 000 per device (with several filters
     in the scan, larger shares run slower on the CPU: their states no longer stay in cache),
     fewer if a chunk's per-step arrays (truth and measurements of every run and step, 8 bytes
-    a value) would pass ``budget`` bytes (256 MiB); at least 64. No more than ``runs`` need,
+    a value) would pass ``budget`` bytes (256 MiB), but at least 64; and no more than ``runs`` need,
     rounded up to a power of two per device (every run of a chunk is computed, live or not), so
     that nearby run counts, and any count from 1 000 per device up, share one compiled program."""
     devices = jax.device_count()
@@ -955,8 +942,8 @@ def monte_carlo(
     """
     if not isinstance(sensor, SensorSuite):
         sensor = SensorSuite((sensor,))
-    structure = TrackingStructure(tuple(specs), windows_of(windows), int(chunk or default_chunk(scenario, sensor, runs=runs)),
-                                  products_elementwise(runs * scenario.steps))
+    chunk = int(chunk or default_chunk(scenario, sensor, runs=runs))
+    structure = TrackingStructure(tuple(specs), windows_of(windows), chunk, products_elementwise(runs * scenario.steps))
     filter_params = list(params) if params is not None else [s.filter.params for s in specs]
     p = TrackingParams(scenario, sensor, np.asarray(P0_cv, float), 0.0, filter_params)
     return run(structure, p, runs, key, progress=progress, precision=precision)
