@@ -329,7 +329,6 @@ def run_errors(out, truth_k, pv, dtype) -> _RunErrors:
 def _lane(label, real: Realised, params, P0_cv, pattern, detect_all, dtype) -> _Lane:
     """Set up one filter for the chunk's scan (``pattern``: the report pattern (T, m) of what it sees)."""
     flt = real.filter
-    T = pattern.shape[0]
     pv = cv_index(real.model)
     reports = pattern.any(axis=-1)
     coast = flt.coast if (flt.coast is not None and not reports.all()) else None
