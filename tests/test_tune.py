@@ -14,7 +14,7 @@ import pytest
 
 from tracklab.config import load_experiment
 from tracklab.filters import kalata_alpha_beta
-from tracklab.tune import objective, tune
+from tracklab.tune import FORWARD_UP_TO, gradient, numbers, objective, tune, tuned_numbers
 
 GRAD = """
 [experiment]
@@ -81,6 +81,32 @@ def test_gradient_matches_central_differences(tmp_path, names, loss):
         np.testing.assert_allclose(float(g[i]), float(fd), rtol=1e-4)
         checked += 1
     assert checked >= 1
+
+
+def test_forward_and_reverse_mode_give_one_gradient(tmp_path):
+    """tune's forward-mode gradient (few tuned numbers) equals its reverse-mode one (many), which
+    the test above checks against central differences: the loss, each filter's term and every
+    component of the gradient, on three filters of three kinds."""
+    exp = load_experiment(write(tmp_path, GRAD))
+    obj = objective(exp, ["q", "r"], "nll")
+    args = (obj.theta0, jax.random.key(3), jnp.arange(32, dtype=jnp.uint32), jnp.ones(32, bool))
+
+    def total(*a):
+        per = obj.losses(*a)
+        return sum(per.values()), per
+
+    n = numbers(obj.theta0)
+    assert tuned_numbers(exp, obj.chosen) == n  # as the memory check counts them, before tracing
+    assert n > FORWARD_UP_TO  # this selection alone would take reverse mode
+    (v_fwd, per_fwd), g_fwd = jax.jit(gradient(total, 1))(*args)  # as if it were one number: forward
+    (v_rev, per_rev), g_rev = jax.jit(gradient(total, n))(*args)
+    np.testing.assert_allclose(float(v_fwd), float(v_rev), rtol=1e-12)
+    for l in per_rev:
+        np.testing.assert_allclose(float(per_fwd[l]), float(per_rev[l]), rtol=1e-12)
+    flat_fwd, _ = jax.flatten_util.ravel_pytree(g_fwd)
+    flat_rev, _ = jax.flatten_util.ravel_pytree(g_rev)
+    assert flat_fwd.shape == flat_rev.shape == (n,) and np.all(np.abs(flat_rev) > 0)
+    np.testing.assert_allclose(np.asarray(flat_fwd), np.asarray(flat_rev), rtol=1e-9)
 
 
 AB = """

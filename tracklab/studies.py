@@ -18,7 +18,7 @@ def check_tune(exp, names, labels, out_toml, runs_per_step=None, max_memory=None
     results folder, memory."""
     from tracklab.memory import check
     from tracklab.output import check_results_folder, check_tuned_file
-    from tracklab.tune import memory_bytes, selection, unwritable
+    from tracklab.tune import forward_mode, memory_bytes, selection, tuned_numbers, unwritable
 
     chosen = selection(exp, names, labels)
     if not chosen:
@@ -33,9 +33,11 @@ def check_tune(exp, names, labels, out_toml, runs_per_step=None, max_memory=None
     check_tuned_file(out_toml, exp.path)
     if folder is not None:
         check_results_folder(folder, exp.path, folder_field)
-    check(exp.path, memory_bytes(exp, runs_per_step or min(exp.runs, 256)), max_memory,
-          "one tuning step (reverse mode keeps every run's filter states for every step)",
-          "fewer --runs-per-step, or fewer experiment.steps")
+    tuned = tuned_numbers(exp, chosen)
+    what = ("the values and tangents of a batch of runs" if forward_mode(tuned)
+            else "reverse mode keeps every run's filter states for every step")
+    check(exp.path, memory_bytes(exp, runs_per_step or min(exp.runs, 256), tuned=tuned), max_memory,
+          f"one tuning step ({what})", "fewer --runs-per-step, or fewer experiment.steps")
 
 
 def run_tune(exp, names, *, steps, lr, loss, runs_per_step, labels, out_toml: Path, folder: Path, log=print, every=10,

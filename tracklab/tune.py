@@ -35,10 +35,18 @@ true pointing error (``pointing``) or the LOS-rate error (``los_rate``); the ser
 estimators' ``q`` against the tracking error (``track_mse``) or the rate error
 (``rate_mse``); all positive, tuned in their logarithms, the gradient through the whole
 closed loop (the estimate steers the antenna or the mount).
+
+The gradient (``gradient``) is taken in forward mode (``jax.jacfwd``: one tangent per tuned
+number carried through the scans, nothing kept per step) for up to ``FORWARD_UP_TO`` tuned
+numbers, in reverse mode above. With two or three numbers, forward mode compiled in 0.3–0.85×
+the time and stepped in 0.35–0.95× (``benchmarks/tune.md``; the airborne joint EKF: 17 s
+against 50 s to compile); its cost grows with every number tuned, reverse mode's does not
+(15 numbers: 2.8× slower a step).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Callable
@@ -131,17 +139,63 @@ def unwritable(exp, chosen: dict) -> str | None:
     return None
 
 
-def memory_bytes(exp, runs_per_step, eval_runs=None) -> float:
-    """A lower bound: the filter states reverse mode keeps for every run and step of a batch,
-    and the held-out evaluation's random draws."""
+FORWARD_UP_TO = 4  # tuned numbers: forward-mode gradient up to here, reverse mode above
+
+
+def forward_mode(numbers: int) -> bool:
+    """Whether a tuning of this many numbers takes its gradient in forward mode."""
+    return numbers <= FORWARD_UP_TO
+
+
+def gradient(total, numbers: int):
+    """``jax.value_and_grad(total, has_aux=True)`` for ``total(theta, *args) -> (loss, aux)``,
+    in forward mode (``jax.jacfwd``) for up to ``FORWARD_UP_TO`` tuned numbers, reverse above."""
+    if not forward_mode(numbers):
+        return jax.value_and_grad(total, has_aux=True)
+
+    @functools.wraps(total)  # the compiled program keeps the loss's name
+    def value_and_grad(theta, *args):
+        def loss(th):
+            value, aux = total(th, *args)
+            return value, (value, aux)
+
+        g, (value, aux) = jax.jacfwd(loss, has_aux=True)(theta)
+        return (value, aux), g
+
+    return value_and_grad
+
+
+def numbers(theta) -> int:
+    """How many numbers a tuning moves (each entry of a vector parameter counts)."""
+    return sum(int(np.size(x)) for x in jax.tree_util.tree_leaves(theta))
+
+
+def tuned_numbers(exp, chosen: dict) -> int:
+    """``numbers`` of a selection (``selection``), from the file's values, before anything is traced."""
+    if hasattr(exp, "tune_start"):
+        return numbers(exp.tune_start(chosen))
+    base = dict(zip((fc.label for fc in exp.filters), exp.params().filters))
+    own = {fc.label for fc in exp.filters if isinstance(fc, FilterSpec)}
+    return numbers({l: [(named_leaves(base[l]) if l in own else base[l])[n] for n in ns] for l, ns in chosen.items()})
+
+
+def memory_bytes(exp, runs_per_step, eval_runs=None, tuned=FORWARD_UP_TO + 1) -> float:
+    """A lower bound on one tuning step of ``tuned`` numbers. Reverse mode: the filter states it
+    keeps for every run and step of a batch; forward mode: the batch's random draws, once for the
+    values and once per tuned number for their tangents. Plus the held-out evaluation's draws."""
     if hasattr(exp, "tune_memory_bytes"):
+        if forward_mode(tuned):
+            return (1 + tuned) * runs_per_step * exp.run_bytes
         return exp.tune_memory_bytes(runs_per_step)
     n = [fc.report_layout(exp.dim).n if isinstance(fc, FilterSpec) else (3 if fc.model == "ca" else 2) * exp.dim
          for fc in exp.filters]  # each filter's state dimension
     state = sum(k * (1 + k) for k in n)  # its mean and covariance
     n_eval = eval_runs or min(exp.runs, 2000)
     width = 2 * exp.dim + exp.sensor.m
-    return runs_per_step * exp.steps * state * 8.0 + min(n_eval, 1000) * exp.steps * width * 4.0
+    held_out = min(n_eval, 1000) * exp.steps * width * 4.0
+    if forward_mode(tuned):
+        return (1 + tuned) * runs_per_step * exp.steps * width * 4.0 + held_out
+    return runs_per_step * exp.steps * state * 8.0 + held_out
 
 
 def selection(exp, names, labels=None) -> dict:
@@ -356,7 +410,7 @@ def _tune(exp, names, *, steps, lr, loss, runs_per_step, eval_runs, seed, labels
         losses = obj.losses(theta, key, idx, live)
         return sum(losses.values()), losses
 
-    value_and_grad = jax.jit(jax.value_and_grad(total, has_aux=True))
+    value_and_grad = jax.jit(gradient(total, numbers(obj.theta0)))
     held_out = jax.jit(obj.losses)
     opt = optax.adam(lr)
     # the parameters go in as host arrays at every step (jax.device_get): an update made of the
