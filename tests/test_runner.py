@@ -193,7 +193,8 @@ def test_a_filters_statistics_do_not_depend_on_the_program_around_it(tmp_path):
 
     ref = sums(exp, False)
     assert ref["EKF/diverged"] == 0 and np.ptp(ref["EKF/count_nis"]) > 0  # missed detections reached the runs
-    _same(sums(exp, True), ref, "element by element")
-    _same(sums(load_experiment(_write(tmp_path, "reversed", _every_kind(order[::-1]))), False), ref, "reversed")
+    # the filters in reverse order, element by element: a lane mixed up by either shows here
+    _same(sums(load_experiment(_write(tmp_path, "reversed", _every_kind(order[::-1]))), True), ref,
+          "reversed, element by element")
     alone = sums(load_experiment(_write(tmp_path, "alone", _every_kind(["EKF"]))), False)
     _same(alone, {k: v for k, v in ref.items() if k.startswith("EKF/")}, "alone")
