@@ -421,6 +421,22 @@ def test_sweep_table_shows_missing_not_nan(tmp_path):
     assert doc[HEADER_KEY] and doc["points"][1]["filters"]["KF"]["summary"]["rmse_pos"] is None
 
 
+def test_tune_writes_its_results_folder_again_and_keeps_a_users_file_in_it(tmp_path, capsys):
+    """A tuning's results folder (tune.json, tune.log, table.md, loss.png) is one tracklab wrote:
+    the same command again replaces it; with a file of the user's added, it is refused."""
+    (tmp_path / "small.toml").write_text(SMALL)
+    args = ("tune", "small.toml", "--params", "q", "--steps", "1", "--runs-per-step", "4", "--out", "t.toml",
+            "--results", "rep")
+    for _ in range(2):
+        code, out, err = main(capsys, *args, cwd=tmp_path)
+        assert code == 0, err
+    assert sorted(os.listdir(tmp_path / "rep")) == ["loss.png", "table.md", "tune.json", "tune.log"]
+    (tmp_path / "rep" / "notes.txt").write_text("precious")
+    code, out, err = main(capsys, *args, cwd=tmp_path)
+    assert code == 2 and "tracklab did not write" in err[-1] and "notes.txt" in err[-1], err
+    assert (tmp_path / "rep" / "notes.txt").read_text() == "precious"
+
+
 def test_tune_that_blows_up_writes_the_last_finite_parameters(tmp_path, capsys):
     (tmp_path / "small.toml").write_text(SMALL)
     code, out, err = main(capsys, "tune", "small.toml", "--params", "q,r", "--lr", "1e300", "--steps", "3",

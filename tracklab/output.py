@@ -3,8 +3,8 @@
 tracklab writes only where it may:
 
 * a results folder (``run``, ``sweep``, ``reproduce``) goes to a path that does not exist
-  yet, an empty folder, or a folder tracklab wrote before: one holding ``stats.json`` or
-  ``sweep.json`` with tracklab's header and nothing but the files tracklab writes there.
+  yet, an empty folder, or a folder tracklab wrote before: one holding ``stats.json``,
+  ``sweep.json`` or ``tune.json`` with tracklab's header and nothing but the files tracklab writes there.
   Anything else (a folder of the user's, the working folder, the experiment's own folder)
   is refused with one line before anything compiles;
 * a tuned experiment file (``tune --out``) goes to a new path or replaces a file that
@@ -41,8 +41,8 @@ from pathlib import Path
 
 from tracklab.errors import ConfigError
 
-RESULTS_DOCUMENTS = ("stats.json", "sweep.json")  # the file that marks a tracklab results folder
-RESULTS_FILES = frozenset(RESULTS_DOCUMENTS + ("table.md", "table.csv"))  # and the figures, *.png
+RESULTS_DOCUMENTS = ("stats.json", "sweep.json", "tune.json")  # the file that marks a tracklab results folder
+RESULTS_FILES = frozenset(RESULTS_DOCUMENTS + ("table.md", "table.csv", "tune.log"))  # and the figures, *.png
 HEADER_KEY = "tracklab_version"  # the first key of every document tracklab writes
 TUNED_HEADER = "# written by tracklab tune"  # the first line of a tuned experiment file
 TABLE_BEGIN, TABLE_END = "<!-- tracklab table: begin -->", "<!-- tracklab table: end -->"  # in a results README
