@@ -1,5 +1,6 @@
 """tracklab reproduce and tracklab table."""
 
+import json
 import subprocess
 import sys
 import textwrap
@@ -93,6 +94,14 @@ def test_reproduce_runs_everything_and_rebuilds_the_combined_table(tmp_path):
     assert (res / "tuning" / "kf_tuned" / "stats.json").exists()
     sweep_table = (res / "mismatch" / "c" / "table.md").read_text()
     assert sweep_table.count("| KF |") == 3 and sweep_table.count("| AB |") == 3
+    # again, into the folders it wrote (results, tuning report, tuned file, sweep): the same numbers
+    before = {p.relative_to(res): p.read_text() for p in res.rglob("*.json")}
+    assert reproduce(d, res, log=lambda *a: None) == folders
+    after = {p.relative_to(res): p.read_text() for p in res.rglob("*.json")}
+    assert after.keys() == before.keys() and len(before) >= 6
+    strip = lambda doc: {k: v for k, v in json.loads(doc).items() if k not in ("wall_s", "compile_s")}
+    for name in before:
+        assert strip(after[name]) == strip(before[name]), name
 
 
 def test_table_formats(tmp_path):
