@@ -2,11 +2,11 @@
 
 Each kind of experiment (and each command: run, sweep, tune) estimates the bytes of the
 arrays it cannot do without — the random draws of one chunk of runs, the per-step outputs
-of a closed-loop chunk, the residuals reverse mode keeps for every step of a tuning batch (or forward mode's
-tangents),
-the per-point statistics of a sweep. These are lower bounds: intermediate values come on
-top. ``check`` refuses an experiment whose lower bound already passes the machine's memory
-(or ``--max-memory``), in one line that says how much it would need and what to shrink.
+of a closed-loop chunk, the residuals reverse mode keeps for every step of a tuning batch
+(forward mode keeps none), the per-point statistics of a sweep. These are lower bounds:
+intermediate values come on top. ``check`` refuses an experiment whose lower bound already
+passes the machine's memory (or ``--max-memory``), in one line that says how much it would
+need and what to shrink.
 """
 
 from __future__ import annotations

@@ -181,11 +181,12 @@ def tuned_numbers(exp, chosen: dict) -> int:
 
 def memory_bytes(exp, runs_per_step, eval_runs=None, tuned=FORWARD_UP_TO + 1) -> float:
     """A lower bound on one tuning step of ``tuned`` numbers. Reverse mode: the filter states it
-    keeps for every run and step of a batch; forward mode: the batch's random draws, once for the
-    values and once per tuned number for their tangents. Plus the held-out evaluation's draws."""
+    keeps for every run and step of a batch; forward mode, which keeps no step's states (only the
+    current step's and their tangents): the batch's random draws (a closed loop: its per-period
+    outputs). Plus the held-out evaluation's draws."""
     if hasattr(exp, "tune_memory_bytes"):
         if forward_mode(tuned):
-            return (1 + tuned) * runs_per_step * exp.run_bytes
+            return runs_per_step * exp.run_bytes
         return exp.tune_memory_bytes(runs_per_step)
     n = [fc.report_layout(exp.dim).n if isinstance(fc, FilterSpec) else (3 if fc.model == "ca" else 2) * exp.dim
          for fc in exp.filters]  # each filter's state dimension
@@ -194,7 +195,7 @@ def memory_bytes(exp, runs_per_step, eval_runs=None, tuned=FORWARD_UP_TO + 1) ->
     width = 2 * exp.dim + exp.sensor.m
     held_out = min(n_eval, 1000) * exp.steps * width * 4.0
     if forward_mode(tuned):
-        return (1 + tuned) * runs_per_step * exp.steps * width * 4.0 + held_out
+        return runs_per_step * exp.steps * width * 4.0 + held_out
     return runs_per_step * exp.steps * state * 8.0 + held_out
 
 
