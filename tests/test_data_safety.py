@@ -505,7 +505,7 @@ def test_servo_latency_inside_the_margin_and_on_axis_are_accepted(tmp_path):
     (("tune", "small.toml", "--params", "q", "--filters", "nope"), "--filters"),
     (("tune", "two.toml", "--params", "r", "--filters", "KF"), "several sensors"),
     (("run", "small.toml", "--max-memory", "2K"), "more than --max-memory"),
-    (("tune", "small.toml", "--params", "q", "--runs-per-step", "100000000"), "fewer --runs-per-step"),
+    (("tune", "small.toml", "--params", "q", "--runs-per-step", "10000000000"), "fewer --runs-per-step"),
     (("sweep", "two.toml", "--grid", "q=0.1:10:1000", "--grid", "r=0.1:10:1000", "--grid", "rho=0.5:1:1000"),
      "fewer grid points"),
     (("run", "big.toml"), "experiment.chunk"),

@@ -34,7 +34,7 @@ def check_tune(exp, names, labels, out_toml, runs_per_step=None, max_memory=None
     if folder is not None:
         check_results_folder(folder, exp.path, folder_field)
     tuned = tuned_numbers(exp, chosen)
-    what = ("forward mode: a batch's random draws for every step" if forward_mode(tuned)
+    what = ("forward mode: a batch's random draws for every step, its states and their tangents" if forward_mode(tuned)
             else "reverse mode keeps every run's filter states for every step")
     check(exp.path, memory_bytes(exp, runs_per_step or min(exp.runs, 256), tuned=tuned), max_memory,
           f"one tuning step ({what})", "fewer --runs-per-step, or fewer experiment.steps")

@@ -180,10 +180,11 @@ def tuned_numbers(exp, chosen: dict) -> int:
 
 
 def memory_bytes(exp, runs_per_step, eval_runs=None, tuned=FORWARD_UP_TO + 1) -> float:
-    """A lower bound on one tuning step of ``tuned`` numbers. Reverse mode: the filter states it
-    keeps for every run and step of a batch; forward mode, which keeps no step's states (only the
-    current step's and their tangents): the batch's random draws (a closed loop: its per-period
-    outputs). Plus the held-out evaluation's draws."""
+    """A lower bound on one tuning step of ``tuned`` numbers (tuning runs in float64). Reverse
+    mode: the filter states it keeps for every run and step of a batch; forward mode, which keeps
+    no step's states: the batch's random draws for every step and the current step's filter
+    states with one tangent per tuned number (a closed loop: its per-period outputs). Plus the
+    held-out evaluation's draws."""
     if hasattr(exp, "tune_memory_bytes"):
         if forward_mode(tuned):
             return runs_per_step * exp.run_bytes
@@ -195,7 +196,7 @@ def memory_bytes(exp, runs_per_step, eval_runs=None, tuned=FORWARD_UP_TO + 1) ->
     width = 2 * exp.dim + exp.sensor.m
     held_out = min(n_eval, 1000) * exp.steps * width * 4.0
     if forward_mode(tuned):
-        return runs_per_step * exp.steps * width * 4.0 + held_out
+        return runs_per_step * (exp.steps * width + state * (1 + tuned)) * 8.0 + held_out
     return runs_per_step * exp.steps * state * 8.0 + held_out
 
 
