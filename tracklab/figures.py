@@ -294,10 +294,15 @@ def _pred_error(ctx):
     if not shown:
         return
     fig, axs = _grid(ctx["plt"], dim, 1)
+
+    def entry(l, f):  # one legend entry per filter, its time-averaged value on each axis beneath
+        values = [(AX[a], _summary_value(f, f"pred_err_rms_{AX[a]}", f" {pu}").strip()[1:-1]) for a in range(dim)]
+        return "\n".join([l] + [f"  {name} {v}" for name, v in values if v])
+
     for a in range(dim):
         ax = axs[a, 0]
         for l, f in shown.items():
-            ax.plot(t, arr(f["series"][f"pred_rmse_{AX[a]}"]), label=l + _summary_value(f, f"pred_err_rms_{AX[a]}"),
+            ax.plot(t, arr(f["series"][f"pred_rmse_{AX[a]}"]), label=entry(l, f) if a == 0 else "_nolegend_",
                     **st[l])
         for w, (t0, t1) in _window_spans(doc).items():
             ax.axvspan(t0, t1, color="0.9", zorder=0)
@@ -305,7 +310,7 @@ def _pred_error(ctx):
         plain_log(ax)
         ax.set_ylabel(f"one-step pred. RMS err {AX[a]} ({pu})")
         ax.grid(True, which="both", alpha=0.3)
-    axs[0, 0].set_title(ctx["title"], fontsize=9)
+    axs[0, 0].set_title(ctx["title"], fontsize=9, pad=14 if _window_spans(doc) else 6)  # above the windows' names
     axs[-1, 0].set_xlabel("time (s)")
     _legend(fig, axs)
     fig.savefig(ctx["folder"] / "pred_error.png", dpi=110)
