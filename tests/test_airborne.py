@@ -105,6 +105,50 @@ def test_decoupled_range_channel_is_a_singer_block():
     np.testing.assert_allclose(np.asarray(phi_inv) @ np.asarray(phi), np.eye(9), atol=1e-12)
 
 
+def test_cd_ekf_tick_integrates_mean_covariance_and_the_transitions_tangent():
+    """One RK4 tick of the joint EKF against a plain RK4 written here: the mean, the covariance
+    (dP/dt = F P + P Fᵀ + G Q Gᵀ with F the full Jacobian), and the transition's columns, which
+    must be the Jacobian ∂x(t+dt)/∂(x, u) of the mean's RK4 step (jax.jacfwd of it)."""
+    from tracklab.airborne.boresight import antenna_rate_at, process_noise
+    from tracklab.airborne.cd_ekf import rk4_tick
+
+    rng = np.random.default_rng(3)
+    x = jnp.array([2e-3, 0.05, 20.0, -1e-3, -0.03, -15.0, 8000.0, -300.0, 5.0])
+    A = rng.normal(size=(9, 9))
+    P = jnp.asarray(A @ A.T * 1e-2 + np.eye(9))
+    u = jnp.array([3.0, -2.0, 1.0])
+    M0, G0 = jnp.asarray(np.eye(9) + 0.1 * rng.normal(size=(9, 9))), jnp.asarray(rng.normal(size=(9, 3)))
+    w0, cmd, dt, lag = jnp.array([0.04, -0.02]), jnp.array([0.06, -0.01]), 0.01, 0.05
+    mp = ModelParams(*(jnp.asarray(v) for v in (30.0, 2.0, 20.0, 5.0)))
+    a_m = jnp.zeros(3)
+
+    def rk4(f, y, h):
+        k1 = f(0.0, y)
+        k2 = f(h / 2, y + h / 2 * k1)
+        k3 = f(h / 2, y + h / 2 * k2)
+        k4 = f(h, y + h * k3)
+        return y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+    f = lambda s, y, v: drift(y, antenna_rate_at(w0, cmd, s, lag), a_m, mp, v)
+    mean = lambda y, v: rk4(lambda s, z: f(s, z, v), y, dt)
+
+    def pair(s, y):
+        z, Pz = y[:9], y[9:].reshape(9, 9)
+        F = jax.jacfwd(f, argnums=1)(s, z, u)
+        return jnp.concatenate([f(s, z, u), jnp.ravel(F @ Pz + Pz @ F.T + process_noise(mp))])
+
+    ref = rk4(pair, jnp.concatenate([x, jnp.ravel(P)]), dt)
+    Jx, Ju = jax.jacfwd(mean, argnums=(0, 1))(x, u)
+    x1, P1, M1, G1 = rk4_tick(x, P, w0, cmd, dt, lag, mp, u, M0, G0)
+    np.testing.assert_allclose(x1, ref[:9], rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(P1, ref[9:].reshape(9, 9), rtol=1e-11, atol=1e-12)
+    np.testing.assert_allclose(M1, Jx @ M0, rtol=1e-11, atol=1e-12)
+    np.testing.assert_allclose(G1, Jx @ G0 + Ju, rtol=1e-11, atol=1e-12)
+    x2, P2, M2, G2 = rk4_tick(x, P, w0, cmd, dt, lag, mp, None, M0)  # no mean levels: u = 0, no G
+    np.testing.assert_allclose(M2, jax.jacfwd(mean)(x, jnp.zeros(3)) @ M0, rtol=1e-11, atol=1e-12)
+    assert G2 is None
+
+
 def test_classical_loop_matches_continuous_closed_loop():
     """The sampled angle loop (the tracker's own compensator and the antenna) against G/(1+G), eq. 17.
 

@@ -48,49 +48,46 @@ class CDState(NamedTuple):
     zsum: jax.Array  # (4,) error signals summed over the period
 
 
-def _rk4(f, x, h):
-    k1 = f(0.0, x)
-    k2 = f(h / 2, x + h / 2 * k1)
-    k3 = f(h / 2, x + h / 2 * k2)
-    k4 = f(h, x + h * k3)
-    return x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+def _rk4(f, y, h):
+    """One classical Runge–Kutta step of ẏ = f(s, y) over [0, h], y a pytree."""
+    axpy = lambda a, k, y: jax.tree.map(lambda yi, ki: yi + a * ki, y, k)
+    k1 = f(0.0, y)
+    k2 = f(h / 2, axpy(h / 2, k1, y))
+    k3 = f(h / 2, axpy(h / 2, k2, y))
+    k4 = f(h, axpy(h, k3, y))
+    return jax.tree.map(lambda yi, a, b, c, d: yi + h / 6 * (a + 2 * b + 2 * c + d), y, k1, k2, k3, k4)
 
 
-def mean_tick(x, u, w0, cmd, dt, lag, mp: ModelParams):
-    """The mean over one sample period (eq. 10, RK4); u: the accelerations' mean levels (Moose), else zeros."""
-    a_m = jnp.zeros(3, x.dtype)  # the own aircraft flies straight (INS input zero)
-    return _rk4(lambda s, y: drift(y, antenna_rate_at(w0, cmd, s, lag), a_m, mp, u), x, dt)
-
-
-def rk4_tick(x, P, w0, cmd, dt, lag, mp: ModelParams, u=None):
-    """Mean and covariance over one sample period (eqs. 10–11), RK4 on the pair.
+def rk4_tick(x, P, w0, cmd, dt, lag, mp: ModelParams, u=None, M=None, G=None):
+    """Mean and covariance over one sample period (eqs. 10–11), RK4 on them together, and with
+    them the transition's tangent columns: M ↦ J_x M and, given G, G ↦ J_x G + J_u for
+    J = ∂x(t+dt)/∂(x, u) of the mean's RK4 step. Returns (x, P, M, G).
 
     F P is the drift's tangent map applied to P's columns (``jax.linearize``: only its nonzero
-    partial derivatives), and P Fᵀ its transpose, P being symmetric."""
+    partial derivatives), and P Fᵀ its transpose, P being symmetric. M and G ride in the same
+    stages as Ṁ = F M and Ġ = F G + ∂f/∂u: RK4 applied to these variational equations is
+    exactly the tangent map of RK4's step, so the drift is linearised once per stage for all."""
     GQG = process_noise(mp)
     a_m = jnp.zeros(3, x.dtype)
     u = jnp.zeros(3, x.dtype) if u is None else u
-    pair = jnp.concatenate([x, jnp.ravel(P)])
+    n = x.shape[0]
+    M = jnp.zeros((n, 0), x.dtype) if M is None else M
+    du = jnp.zeros((3, n + M.shape[1]), x.dtype)
+    if G is not None:  # G's columns move u as well (∂f/∂u)
+        du = jnp.concatenate([du, jnp.eye(3, dtype=x.dtype)], axis=1)
 
     def deriv(s, y):
+        x, P, C = y
         w = antenna_rate_at(w0, cmd, s, lag)
-        x, P = y[:9], y[9:].reshape(9, 9)
-        fx, f_lin = jax.linearize(lambda z: drift(z, w, a_m, mp, u), x)
-        FP = jax.vmap(f_lin, in_axes=1, out_axes=1)(P)
-        return jnp.concatenate([fx, jnp.ravel(FP + FP.T + GQG)])
+        fx, f_lin = jax.linearize(lambda z, v: drift(z, w, a_m, mp, v), x, u)
+        FC = jax.vmap(f_lin, in_axes=(1, 1), out_axes=1)(jnp.concatenate([P, C], axis=1), du)
+        FP = FC[:, :n]
+        return fx, FP + FP.T + GQG, FC[:, n:]
 
-    out = _rk4(deriv, pair, dt)
-    return out[:9], symmetrise(out[9:].reshape(9, 9))
-
-
-def transition_products(x, u, w0, cmd, dt, lag, mp: ModelParams, M, G=None):
-    """J_x M and J_x G + J_u for J = ∂x(t+dt)/∂(x, u), the mean tick's tangent map (``mean_tick``)
-    applied column by column; G None: the first alone."""
-    u = jnp.zeros(3, x.dtype) if u is None else u
-    _, lin = jax.linearize(lambda x, u: mean_tick(x, u, w0, cmd, dt, lag, mp), x, u)
-    columns = jax.vmap(lin, in_axes=1, out_axes=1)
-    M_next = columns(M, jnp.zeros((3, M.shape[1]), x.dtype))
-    return M_next, (None if G is None else columns(G, jnp.eye(3, dtype=x.dtype)))
+    columns = M if G is None else jnp.concatenate([M, G], axis=1)
+    x, P, C = _rk4(deriv, (x, P, columns), dt)
+    m = M.shape[1]
+    return x, symmetrise(P), C[:, :m], (None if G is None else C[:, m:])
 
 
 def command(x, lam):
@@ -105,8 +102,7 @@ def predict_period(x, P, w_a, cmd, timing: Timing, mp: ModelParams, u=None):
 
     def step(carry, _):
         x, P, w, M, G = carry
-        M, G = transition_products(x, u, w, cmd, timing.dt, timing.lag, mp, M, G)  # Φ(tᵢ, t_start)
-        x, P = rk4_tick(x, P, w, cmd, timing.dt, timing.lag, mp, u)
+        x, P, M, G = rk4_tick(x, P, w, cmd, timing.dt, timing.lag, mp, u, M, G)  # M: Φ(tᵢ, t_start)
         w, _ = antenna_motion(w, cmd, timing.dt, timing.lag)
         return (x, P, w, M, G), (x, M)
 
