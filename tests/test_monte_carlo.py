@@ -152,7 +152,7 @@ print(json.dumps({"devices": jax.device_count(),
 """
 
 
-def test_statistics_do_not_depend_on_device_count(tmp_path):
+def test_statistics_do_not_depend_on_device_count(tmp_path, xla_flags):
     """Runs split over 2 and 4 (forced host) devices give the statistics of one device, whatever
     the chunk (100 runs over 2 devices; 301 runs padded with dead runs to fill 4). One device at
     other chunk sizes: test_chunking_does_not_change_statistics."""
@@ -162,7 +162,7 @@ def test_statistics_do_not_depend_on_device_count(tmp_path):
     ref = _flat(load_experiment(path).monte_carlo(chunk=301))
     assert jax.device_count() == 1
     for devices, chunk in ((2, 100), (4, 301)):
-        env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}")
+        env = dict(os.environ, XLA_FLAGS=xla_flags(devices))
         out = subprocess.run([sys.executable, str(script), str(path), str(chunk)], env=env, capture_output=True,
                              text=True, check=True)
         doc = json.loads(out.stdout.strip().splitlines()[-1])

@@ -165,7 +165,7 @@ def test_a_parameter_the_loss_does_not_see_is_refused():
         tracklab.tune(exp, {"mine": {"spare": "positive"}}, steps=2, runs_per_step=16, eval_runs=16)
 
 
-def test_import_leaves_jax_as_it_was(tmp_path):
+def test_import_leaves_jax_as_it_was(tmp_path, xla_flags):
     """``import tracklab`` sets no XLA flag, no device count, no 64-bit mode; the runner still
     computes in float64 (the same numbers as with ``configure()``)."""
     code = """
@@ -183,10 +183,10 @@ sums = exp.monte_carlo().sums["kf"]
 print(json.dumps({"before": before, "after": after, "devices": devices, "mode": jax.config.jax_enable_x64,
                   "sumsq": sums["sumsq_pos"].tolist()}))
 """
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env = dict(os.environ, XLA_FLAGS=xla_flags())  # the suite's compile flags, no device count
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     doc = json.loads(out.stdout.strip().splitlines()[-1])
-    assert doc["after"] == doc["before"] == [None, False]
+    assert doc["after"] == doc["before"] == [xla_flags(), False]
     assert doc["devices"] == 1 and doc["mode"] is False
     from tracklab.scenarios import ConstantVelocity
     from tracklab.sensors import Sensor

@@ -41,10 +41,10 @@ def _numbers(a, b, where):
         assert a == b, where
 
 
-def test_two_processes_give_the_statistics_of_one(tmp_path):
+def test_two_processes_give_the_statistics_of_one(tmp_path, xla_flags):
     path = tmp_path / "exp.toml"
     path.write_text(EXPERIMENT)
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=1")
+    env = dict(os.environ, XLA_FLAGS=xla_flags(1))
     run = [*_command(), "run", str(path), "--no-figures"]
     coordinator = f"127.0.0.1:{_free_port()}"
     # process 0 from the options, process 1 from the environment

@@ -123,11 +123,11 @@ print(json.dumps(out))
 """
 
 
-def test_statistics_do_not_depend_on_the_device_count(tmp_path):
+def test_statistics_do_not_depend_on_the_device_count(tmp_path, xla_flags):
     """Every world's chunks split over 2 devices (3 runs a chunk: one device gets a padded, dead
     run) give the sums of one device, with programs that pass nothing between the devices."""
     paths = [_write(tmp_path, n, t) for n, t in (("tracking", TRACKING), ("airborne", AIRBORNE), ("servo", SERVO))]
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    env = dict(os.environ, XLA_FLAGS=xla_flags(2))
     script = tmp_path / "devices.py"
     script.write_text(DEVICES)
     done = subprocess.run([sys.executable, str(script), os.path.dirname(__file__), *map(str, paths)], env=env,

@@ -216,7 +216,7 @@ print(json.dumps({"devices": jax.device_count(), "steps": len(res.history), "com
 """
 
 
-def test_tune_compiles_its_gradient_and_its_evaluation_once(tmp_path):
+def test_tune_compiles_its_gradient_and_its_evaluation_once(tmp_path, xla_flags):
     """On two devices, every step's parameters find the gradient program the first step compiled
     (an update made of the program's outputs is placed on the devices, where they were, and
     would compile it again), and the held-out evaluation after tuning finds the one before it."""
@@ -224,7 +224,7 @@ def test_tune_compiles_its_gradient_and_its_evaluation_once(tmp_path):
 
     script = tmp_path / "compiles.py"
     script.write_text(_COMPILES)
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    env = dict(os.environ, XLA_FLAGS=xla_flags(2))
     done = subprocess.run([sys.executable, str(script), str(write(tmp_path, QR))], env=env, capture_output=True,
                           text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
