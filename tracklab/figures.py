@@ -73,9 +73,10 @@ def _summary_value(f, key, unit=""):
 
 def _label(label, f, keys):
     """The label, then the filter's time-averaged values ``v ± h unit`` one per line (a legend
-    entry stays narrow beside the axes)."""
-    parts = [_summary_value(f, k, f" {u}").strip()[1:-1] for k, u in keys]
-    return "\n".join([label] + ["  " + p for p in parts if p])
+    entry stays narrow beside the axes). ``keys``: (key, unit) or (key, unit, name), the name
+    written before its value."""
+    parts = [(f"{k[2]} " if len(k) > 2 else "", _summary_value(f, k[0], f" {k[1]}").strip()[1:-1]) for k in keys]
+    return "\n".join([label] + ["  " + n + p for n, p in parts if p])
 
 
 def split_outliers(values: dict, centre=None, factor=OUTLIER):
@@ -294,15 +295,12 @@ def _pred_error(ctx):
     if not shown:
         return
     fig, axs = _grid(ctx["plt"], dim, 1)
-
-    def entry(l, f):  # one legend entry per filter, its time-averaged value on each axis beneath
-        values = [(AX[a], _summary_value(f, f"pred_err_rms_{AX[a]}", f" {pu}").strip()[1:-1]) for a in range(dim)]
-        return "\n".join([l] + [f"  {name} {v}" for name, v in values if v])
+    keys = [(f"pred_err_rms_{AX[a]}", pu, AX[a]) for a in range(dim)]  # each axis's value, named
 
     for a in range(dim):
         ax = axs[a, 0]
         for l, f in shown.items():
-            ax.plot(t, arr(f["series"][f"pred_rmse_{AX[a]}"]), label=entry(l, f) if a == 0 else "_nolegend_",
+            ax.plot(t, arr(f["series"][f"pred_rmse_{AX[a]}"]), label=_label(l, f, keys) if a == 0 else "_nolegend_",
                     **st[l])
         for w, (t0, t1) in _window_spans(doc).items():
             ax.axvspan(t0, t1, color="0.9", zorder=0)
