@@ -20,12 +20,12 @@ def _distinct_experiments():
     but the files with a [servo] table (tests/test_servo.py) or an [airborne] table
     (tests/test_airborne*.py), which have their own float32 tests.
 
-    A filter kind (with its motion model) is checked once per scenario kind and sensor kinds:
-    among files with the same scenario and sensor kinds (another recorded flight, other noise
-    levels or filter settings: the real-flight radar files, lidar_crossing_coarse_angle, the
-    tuning files), the file with the most filter kinds is checked whole, and another file only
-    for the filters of kinds it adds (none: left out). A kind checked again on the same kinds of
-    scenario and sensor exercises nothing new and would double the suite's compile time."""
+    A filter kind (with its motion model) is checked once per set of sensor kinds, and every
+    scenario kind once: taking the files with the most filter kinds first, a file is checked for
+    the filters of kinds it adds on its sensors (whole if all are new), and a file that adds none
+    is checked only if its scenario kind is not yet, on its first filter. A filter kind checked
+    again on the same sensors exercises nothing new (the scenario's truth is checked with the
+    scenario) and would double the suite's compile time."""
     import tomllib
 
     found = []
@@ -34,15 +34,18 @@ def _distinct_experiments():
         if "servo" in raw or "airborne" in raw:
             continue
         sensors = raw["sensor"] if isinstance(raw["sensor"], list) else [raw["sensor"]]
-        kinds = (raw["scenario"]["kind"], tuple(s["kind"] for s in sensors))
         filters = {f["label"]: (f["kind"], f.get("model", "cv")) for f in raw["filter"]}
-        found.append((p, kinds, filters))
-    covered: dict = {}  # (scenario kind, sensor kinds) -> filter kinds already checked
+        found.append((p, raw["scenario"]["kind"], tuple(s["kind"] for s in sensors), filters))
+    covered: dict = {}  # sensor kinds -> filter kinds already checked
+    scenarios = set()
     out = []
-    for p, kinds, filters in sorted(found, key=lambda e: (-len(set(e[2].values())), e[0].name)):
-        seen = covered.setdefault(kinds, set())
+    for p, scenario, sensors, filters in sorted(found, key=lambda e: (-len(set(e[3].values())), e[0].name)):
+        seen = covered.setdefault(sensors, set())
         labels = [label for label, kind in filters.items() if kind not in seen]
+        if not labels and scenario not in scenarios:
+            labels = list(filters)[:1]
         seen.update(filters.values())
+        scenarios.add(scenario)
         if labels:
             out.append((p, None if len(labels) == len(filters) else labels))
     return sorted(out)
