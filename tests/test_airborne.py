@@ -357,7 +357,8 @@ def test_airborne_statistics_do_not_depend_on_the_chunk_size(tmp_path):
     exp.chunk = 5  # 3 chunks, the last one padded with 3 masked runs
     chunked = exp.monte_carlo()
     for key, v in whole.sums["classical"].items():
-        np.testing.assert_allclose(chunked.sums["classical"][key], v, rtol=1e-12, atol=1e-12, err_msg=key)
+        # equal up to the order of floating-point sums (a wrong or missing run is off by far more)
+        np.testing.assert_allclose(chunked.sums["classical"][key], v, rtol=1e-10, atol=1e-12, err_msg=key)
     a, b = whole.samples.pair(0, 0), chunked.samples.pair(0, 0)  # the runs' samples, behind the intervals
     assert a.n == b.n
     np.testing.assert_allclose(b.mean_f, a.mean_f, rtol=1e-12)  # NaN: the classical loops have no NEES

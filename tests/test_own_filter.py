@@ -209,6 +209,7 @@ print(json.dumps([os.environ["XLA_FLAGS"], jax.device_count(), jax.config.jax_en
     flags, devices, x64 = json.loads(out.stdout.strip().splitlines()[-1])
     assert devices == 3 and x64 is True
     assert "--xla_cpu_multi_thread_eigen=false" in flags and flags.count("device_count") == 1
+    assert "--xla_cpu_use_fusion_emitters=false" in flags
 
 
 # ------------------------------------------------------------------- experiment files

@@ -178,23 +178,21 @@ def _every_kind(order):
 
 
 def test_a_filters_statistics_do_not_depend_on_the_program_around_it(tmp_path):
-    """Filters whose errors have the same shapes share their error and statistics kernels, a filter
-    alone makes them inside its own step, and a large call writes small products element by
-    element: every arrangement gives each filter the same sums (a mixed-up lane is off by far more)."""
+    """Filters whose errors have the same shapes share their error and statistics kernels, and a
+    filter alone makes them inside its own step: every arrangement gives each filter the same
+    sums (a mixed-up lane is off by far more)."""
     from tracklab.worlds import tracking
 
     order = ["EKF", "alpha-beta", "CMKF", "UKF", "IMM", "STF", "Polar KF"]
     exp = load_experiment(_write(tmp_path, "kinds", _every_kind(order)))
-    assert not exp.structure(runs=exp.runs).elementwise and exp.structure(runs=10**6).elementwise
 
-    def sums(exp, elementwise):
-        out = tracking.run(exp.structure(elementwise=elementwise), exp.params(), exp.runs, exp.seed).sums
+    def sums(exp):
+        out = tracking.run(exp.structure(), exp.params(), exp.runs, exp.seed).sums
         return {f"{lab}/{k}": np.asarray(v, float) for lab, d in out.items() for k, v in d.items()}
 
-    ref = sums(exp, False)
+    ref = sums(exp)
     assert ref["EKF/diverged"] == 0 and np.ptp(ref["EKF/count_nis"]) > 0  # missed detections reached the runs
-    # the filters in reverse order, element by element: a lane mixed up by either shows here
-    _same(sums(load_experiment(_write(tmp_path, "reversed", _every_kind(order[::-1]))), True), ref,
-          "reversed, element by element")
-    alone = sums(load_experiment(_write(tmp_path, "alone", _every_kind(["EKF"]))), False)
+    # the filters in reverse order: a lane mixed up shows here
+    _same(sums(load_experiment(_write(tmp_path, "reversed", _every_kind(order[::-1])))), ref, "reversed")
+    alone = sums(load_experiment(_write(tmp_path, "alone", _every_kind(["EKF"]))))
     _same(alone, {k: v for k, v in ref.items() if k.startswith("EKF/")}, "alone")

@@ -5,16 +5,12 @@ Monte-Carlo runs. XLA on CPU runs batched LAPACK calls (cholesky, solve) and
 batched dot_general on such tiny matrices slowly, while elementwise arithmetic
 over the run axis vectorises well. These routines unroll the loops over rows at
 trace time (the sizes are static), so under ``vmap`` every operation is an
-elementwise operation on (runs, …) arrays. Within ``elementwise_products`` (the
-engine's per-run filter steps) products up to 4 × 4 go one step further: element
-by element, so that every operation is on a run-length vector.
+elementwise operation on (runs, …) arrays.
 """
 
 from __future__ import annotations
 
-import contextlib
 import math
-import threading
 
 import jax
 import jax.numpy as jnp
@@ -30,60 +26,12 @@ def _concrete(A):
     return None
 
 
-def _elements(A):
-    """The elements of a small 2-D array as a nested list of scalars; NumPy values for an
-    array known at trace time."""
-    c = _concrete(A)
-    if c is not None:
-        return [[c[i, j] for j in range(A.shape[1])] for i in range(A.shape[0])]
-    n, m = A.shape
-    return [[jax.lax.squeeze(jax.lax.slice(A, (i, j), (i + 1, j + 1)), (0, 1)) for j in range(m)] for i in range(n)]
-
-
-def _from_elements(rows, dtype):
-    """The (n, m) array of a nested list of scalars (inverse of ``_elements``)."""
-    return jnp.stack([jnp.stack([jnp.asarray(v, dtype) for v in r]) for r in rows])
-
-
-SCALAR_TERMS = 64  # the most multiply terms a product is written out element by element (4 × 4 × 4)
-_FORM = threading.local()  # whether products are written element by element (trace time)
-
-
-@contextlib.contextmanager
-def elementwise_products(on: bool = True):
-    """Within this context (at trace time), ``mm`` and ``symmetrise`` write products of up to
-    ``SCALAR_TERMS`` terms element by element.
-
-    Element by element, every operation of a filter vmapped over runs is on a run-length
-    vector, which XLA's loops over the runs vectorise: the lidar EKF runs 1.4–1.9× faster end
-    to end than with (runs, n, n) arrays, whose loops run over n-long rows. It costs
-    compile time (about a third more for a 4-state filter) and makes reverse-mode gradients
-    slow to compile, so the engine turns it on only around the per-run filter steps of a
-    Monte-Carlo chunk.
-    """
-    before = getattr(_FORM, "on", False)
-    _FORM.on = on
-    try:
-        yield
-    finally:
-        _FORM.on = before
-
-
-def _elementwise() -> bool:
-    """Whether products are written element by element here (see ``elementwise_products``)."""
-    return getattr(_FORM, "on", False)
-
-
 def mm(A, B):
     """Matrix product of small matrices.
 
     A sum of outer products, one per inner index: under ``vmap`` each term is an
-    elementwise multiply, with no reduction. Within ``elementwise_products`` a product
-    of up to ``SCALAR_TERMS`` multiply terms (a 4 × 4 product) is instead written out
-    element by element, each element a chain of multiply-adds of single elements
-    (larger ones would compile slowly: a 9 × 9 product is 729 terms). Either way, terms
-    whose factor is known to be zero at trace time (the structural zeros of F, H, G)
-    are skipped.
+    elementwise multiply, with no reduction. Terms whose factor is known to be zero at
+    trace time (the structural zeros of F, H, G) are skipped.
     """
     vec_a, vec_b = A.ndim == 1, B.ndim == 1
     A2 = A[None, :] if vec_a else A
@@ -96,19 +44,14 @@ def mm(A, B):
         nonzero &= (ca != 0)[:, :, None]
     if cb is not None:
         nonzero &= (cb != 0)[None, :, :]
-    if _elementwise() and nonzero.sum() <= SCALAR_TERMS:
-        ea, eb = _elements(A2), _elements(B2)
-        out = _from_elements([[_dot_terms([(ea[i][k], eb[k][j]) for k in range(K) if nonzero[i, k, j]], dtype)
-                              for j in range(m)] for i in range(n)], dtype)
-    else:
-        out = None
-        for k in range(K):
-            if not nonzero[:, k, :].any():
-                continue
-            t = A2[:, k, None] * B2[None, k, :]
-            out = t if out is None else out + t
-        if out is None:
-            out = jnp.zeros((n, m), dtype)
+    out = None
+    for k in range(K):
+        if not nonzero[:, k, :].any():
+            continue
+        t = A2[:, k, None] * B2[None, k, :]
+        out = t if out is None else out + t
+    if out is None:
+        out = jnp.zeros((n, m), dtype)
     if vec_a:
         return out[0]
     if vec_b:
@@ -116,36 +59,9 @@ def mm(A, B):
     return out
 
 
-def _dot_terms(pairs, dtype):
-    """Σ a·b over the pairs, with lax's elementwise ops (cheap to trace); a factor known to be 1 is
-    not multiplied."""
-    def cast(v):
-        if isinstance(v, np.generic):
-            return np.asarray(v, dtype)
-        return v if v.dtype == dtype else jax.lax.convert_element_type(v, dtype)
-
-    acc = None
-    for a, b in pairs:
-        if isinstance(a, np.generic) and isinstance(b, np.generic):
-            t = np.asarray(a * b, dtype)
-        elif isinstance(a, np.generic) and a == 1:
-            t = cast(b)
-        elif isinstance(b, np.generic) and b == 1:
-            t = cast(a)
-        else:
-            t = jax.lax.mul(cast(a), cast(b))
-        acc = t if acc is None else jax.lax.add(acc, t)
-    return np.zeros((), dtype) if acc is None else acc
-
-
 def symmetrise(P):
-    """(P + Pᵀ)/2; element by element up to 4 × 4 within ``elementwise_products``."""
-    if not _elementwise() or P.ndim != 2 or P.shape[-1] > 4:
-        return 0.5 * (P + jnp.swapaxes(P, -1, -2))
-    e = _elements(P)
-    n = len(e)
-    return _from_elements([[e[i][i] if i == j else 0.5 * (e[i][j] + e[j][i]) for j in range(n)] for i in range(n)],
-                          P.dtype)
+    """(P + Pᵀ)/2."""
+    return 0.5 * (P + jnp.swapaxes(P, -1, -2))
 
 
 def jacobian(f, x):

@@ -11,6 +11,10 @@ it before anything touches JAX, as the README shows. It sets:
 * **Single-threaded Eigen kernels** (``--xla_cpu_multi_thread_eigen=false``): with the
   multi-threaded Eigen pool, long vmapped scans of small matrix products (the airborne
   trackers) intermittently never finish, every thread idle in the pool.
+* **XLA's CPU fusion emitters off** (``--xla_cpu_use_fusion_emitters=false``): XLA then
+  writes each fused kernel with its older element-by-element emitter. The lidar crossing's
+  six-filter program compiles in about 3.3 s instead of 5.1 s and runs as fast or faster
+  (``benchmarks/compile.md``).
 * **JAX's 64-bit mode** (``jax_enable_x64``), so that arrays a user builds (a filter's
   parameters, its constants) are float64 like the engine's.
 
@@ -48,18 +52,22 @@ def _backend_started() -> bool:
     return bool(xla_bridge.backends_are_initialized())
 
 
-def configure(*, cpu_devices: int | None = None, eigen_threads: bool = False, float64: bool = True) -> dict:
+def configure(*, cpu_devices: int | None = None, eigen_threads: bool = False, fusion_emitters: bool = False,
+              float64: bool = True) -> dict:
     """Set the process-wide JAX settings tracklab is measured with (see the module's doc).
 
     ``cpu_devices``: CPU devices to create (default: one per usable core); ``eigen_threads``:
-    keep XLA's multi-threaded Eigen pool; ``float64``: turn on JAX's 64-bit mode. A flag that
-    XLA_FLAGS already names is kept. Returns the settings in force. Raises ``RuntimeError``
-    when JAX's backend has already started with a different device count (call it first).
+    keep XLA's multi-threaded Eigen pool; ``fusion_emitters``: keep XLA's CPU fusion emitters;
+    ``float64``: turn on JAX's 64-bit mode. A flag that XLA_FLAGS already names is kept.
+    Returns the settings in force. Raises ``RuntimeError`` when JAX's backend has already
+    started with a different device count (call it first).
     """
     flags = os.environ.get("XLA_FLAGS", "")
     want = []
     if not eigen_threads and "xla_cpu_multi_thread_eigen" not in flags:
         want.append("--xla_cpu_multi_thread_eigen=false")
+    if not fusion_emitters and "xla_cpu_use_fusion_emitters" not in flags:
+        want.append("--xla_cpu_use_fusion_emitters=false")
     if "xla_force_host_platform_device_count" not in flags:
         want.append(f"--xla_force_host_platform_device_count={int(cpu_devices or usable_cores())}")
     started = _backend_started()

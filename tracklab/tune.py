@@ -291,8 +291,7 @@ def objective(exp, names, loss="mse_pos", labels=None) -> Objective:
         raise ValueError(f"no filter has any of the parameters {', '.join(names)}")
     if hasattr(exp, "tune_selection"):
         return _closed_loop_objective(exp, chosen, loss)
-    # products as outer-product sums: element by element, the gradient compiles slowly
-    structure = exp.structure(elementwise=False)
+    structure = exp.structure()
     fn = runner.sharded(tracking.world(structure))
     params = exp.params()
     base = params.filters

@@ -75,18 +75,15 @@ class Experiment:
         """(view function or None, measurement model) of what a filter sees."""
         return self.declared(fc).sees(self.sensor)
 
-    def structure(self, chunk=None, runs=None, elementwise=None):
+    def structure(self, chunk=None, runs=None):
         """What the compiled program depends on: the filters' kinds, models, options and views,
-        the report windows, the chunk size and, from the size of the call (``runs``, times the
-        grid points of a sweep), whether small products are written element by element
-        (``tracking.products_elementwise``); never the run count itself, nor any number."""
-        from tracklab.worlds.tracking import TrackingStructure, default_chunk, products_elementwise, windows_of
+        the report windows and the chunk size (from ``runs`` when the file sets none); never the
+        run count itself, nor any number."""
+        from tracklab.worlds.tracking import TrackingStructure, default_chunk, windows_of
 
         lanes = tuple(self.declared(fc) for fc in self.filters)
         chunk = int(chunk or self.chunk or default_chunk(self.scenario, self.sensor, runs=runs))
-        if elementwise is None:
-            elementwise = runs is None or products_elementwise(int(runs) * self.steps)
-        return TrackingStructure(lanes, windows_of(self.pred_windows), chunk, elementwise)
+        return TrackingStructure(lanes, windows_of(self.pred_windows), chunk)
 
     def params(self):
         """Every number of the experiment, as the compiled program's argument."""

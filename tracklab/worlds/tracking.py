@@ -41,7 +41,7 @@ from tracklab.filters.core import Filter, Meas, Prior, trace_problem
 from tracklab.filters.fusion import view_of
 from tracklab.intervals import LEVEL, precision_reached
 from tracklab.metrics import REPORT_WINDOW
-from tracklab.linalg import elementwise_products, mahalanobis2, mahalanobis2_logdet, norm, sum_elements
+from tracklab.linalg import mahalanobis2, mahalanobis2_logdet, norm, sum_elements
 from tracklab.models import MODELS, cv, cv_index, interleaved
 from tracklab.montecarlo import runner
 from tracklab.pytree import like
@@ -164,7 +164,6 @@ class TrackingStructure:
     filters: tuple  # DeclaredFilter or FilterSpec, one per compared filter
     windows: tuple = ()  # (name, (steps,) bools): where each run's largest prediction error is taken
     chunk: int = 1000  # runs per chunk
-    elementwise: bool = True  # small matrix products element by element (linalg.elementwise_products)
 
     @property
     def labels(self) -> list[str]:
@@ -572,8 +571,6 @@ def _stand_in(tree):
 
 def _chunk(structure: TrackingStructure):
     """The tracking world's chunk: (params, keys, live, exclude) -> sums (packed; see ``unpack``)."""
-    elementwise = structure.elementwise
-
     def local(params: TrackingParams, keys, live, exclude):  # the runs of ``keys`` on one device
         scenario, sensor = params.scenario, params.sensor
         d, T, dt = scenario.dim, scenario.steps, scenario.dt
@@ -621,7 +618,7 @@ def _chunk(structure: TrackingStructure):
             z_views = [z_all if ln.view is None else jax.vmap(ln.view, in_axes=1, out_axes=1)(z_all)
                        for ln in lanes]
         truth_batched = scenario.per_run or not stream
-        state_axes, states0, per_run_state, err_axes, kinds = [], [], [], [], []
+        state_axes, states0, err_axes, kinds = [], [], [], []
         for ln in lanes:
             fixed = (t, ln.present, jnp.asarray(ln.reports))
             m_f = ln.pattern.shape[1]
@@ -630,14 +627,11 @@ def _chunk(structure: TrackingStructure):
                                                      may_share=ln.present is not None)
             state_axes.append(jax.tree_util.tree_map(lambda s: None if s else 0, shared))
             states0.append(jax.vmap(ln.init, out_axes=state_axes[-1])(prior))
-            # products element by element where the filter's state is carried per run (linalg.elementwise_products)
-            per_run_state.append(elementwise and not all(jax.tree_util.tree_leaves(shared)))
             # the error inputs that differ between runs carry the runs last; the others (a shared
             # covariance's Pe and S) once
             in_tree = jax.tree_util.tree_structure(inputs)
             err_axes.append(jax.tree_util.tree_unflatten(in_tree, [-1 if v else None for v in varies]))
-            kinds.append((in_tree, tuple((a.shape, a.dtype) for a in jax.tree_util.tree_leaves(inputs)), tuple(varies),
-                          per_run_state[-1]))
+            kinds.append((in_tree, tuple((a.shape, a.dtype) for a in jax.tree_util.tree_leaves(inputs)), tuple(varies)))
         # filters whose error inputs have the same shapes form a group: their errors, per-step sums
         # and per-run samples are computed together, one set of kernels for the group. A filter
         # alone has its errors made inside its own vmap over the runs, where XLA fuses them with
@@ -668,8 +662,7 @@ def _chunk(structure: TrackingStructure):
                 return jax.tree_util.tree_map(lambda a: a[None], outs[0])
             stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *outs)
             per_run = jax.vmap(lambda a: errors_of(a, dtype), in_axes=(err_axes[g[0]],), out_axes=-1)
-            with elementwise_products(per_run_state[g[0]]):
-                return jax.vmap(per_run)(stacked)
+            return jax.vmap(per_run)(stacked)
 
         def group_stats(g, pending, w_k, bad_any, per_run_acc):  # w_k: the step before's windows
             r, first = pending
@@ -713,8 +706,7 @@ def _chunk(structure: TrackingStructure):
                 for i, state in zip(g, states):
                     present_k, reports_k = lane_in[i]
                     z_f = zv_k[i] if not stream else (z_k if lanes[i].view is None else lanes[i].view(z_k))
-                    with elementwise_products(per_run_state[i]):
-                        state, out_i = steps[i](state, (z_f, truth_k, t_k, present_k, reports_k))
+                    state, out_i = steps[i](state, (z_f, truth_k, t_k, present_k, reports_k))
                     new_states.append(state)
                     outs.append(out_i)
                 r = group_errors(g, outs)
@@ -825,18 +817,6 @@ LOSSES: dict[str, Callable] = {
 }
 
 
-# Runs × steps (× grid points) from which a call gets the program whose small products are
-# written element by element (linalg.elementwise_products): on the CPU it runs about 25 % faster
-# and compiles about 40 % longer (the lidar file's six filters: 2.6 against 3.5 s a 10 000-run
-# call, 11 against 8 s of compile; benchmarks/compile.md). Below, the compile saved outweighs.
-ELEMENTWISE_FROM = 1_000_000
-
-
-def products_elementwise(run_steps: int) -> bool:
-    """Whether a call of ``run_steps`` runs × steps is compiled with element-by-element products."""
-    return run_steps >= ELEMENTWISE_FROM
-
-
 @functools.lru_cache(maxsize=64)
 def world(structure: TrackingStructure) -> runner.World:
     """The tracking world of a structure (one per structure: its compiled programs are shared)."""
@@ -942,7 +922,7 @@ def monte_carlo(
     if not isinstance(sensor, SensorSuite):
         sensor = SensorSuite((sensor,))
     chunk = int(chunk or default_chunk(scenario, sensor, runs=runs))
-    structure = TrackingStructure(tuple(specs), windows_of(windows), chunk, products_elementwise(runs * scenario.steps))
+    structure = TrackingStructure(tuple(specs), windows_of(windows), chunk)
     filter_params = list(params) if params is not None else [s.filter.params for s in specs]
     p = TrackingParams(scenario, sensor, np.asarray(P0_cv, float), 0.0, filter_params)
     return run(structure, p, runs, key, progress=progress, precision=precision)
