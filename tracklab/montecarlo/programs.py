@@ -167,13 +167,13 @@ def _listen() -> None:
     jax.monitoring.register_event_listener(_count_jax_cache_hits)
 
 
-def compile_here(lowered):
-    """``lowered.compile()``, and whether XLA compiled it in this process (True) rather than JAX
-    loading it from its persistent cache (an executable JAX loaded serialises without some of
-    its kernels' code, so only the first may be stored)."""
+def compile_here(lowered, compiler_options=None):
+    """``lowered.compile(compiler_options)``, and whether XLA compiled it in this process (True)
+    rather than JAX loading it from its persistent cache (an executable JAX loaded serialises
+    without some of its kernels' code, so only the first may be stored)."""
     _listen()
     before = _jax_cache_hits
-    compiled = lowered.compile()
+    compiled = lowered.compile(compiler_options=compiler_options)
     return compiled, _jax_cache_hits == before
 
 

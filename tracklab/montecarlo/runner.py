@@ -64,6 +64,8 @@ class World(NamedTuple):
     chunk: Callable  # (params, keys (B,), live (B,), exclude (lanes, B)) -> sums pytree; pure
     lanes: int  # rows of ``exclude``
     chunk_size: int  # runs per chunk (a multiple of nothing in particular; padded for the devices)
+    # XLA options its chunk programs compile with, over the process's XLA_FLAGS: (name, value) pairs
+    compiler_options: tuple = ()
 
 
 @dataclass
@@ -239,12 +241,13 @@ def program(world: World, params, precision: str = "float64", points: int | None
         args = (params, jax.random.key(0), jnp.zeros((B,), jnp.uint32), jnp.zeros((B,), bool),
                 jnp.zeros(lead + (world.lanes, B), bool))
         lowered = jax.jit(fn).lower(*args)
+        options = dict(world.compiler_options) or None
         if stored:
-            compiled, here = programs.compile_here(lowered)
+            compiled, here = programs.compile_here(lowered, options)
             if here:  # XLA compiled it in this process (not loaded by JAX from its own cache)
                 programs.store(stored, compiled)
         else:
-            compiled = lowered.compile()
+            compiled = lowered.compile(compiler_options=options)
     compile_s = time.perf_counter() - t0
     compiles += 1
     _PROGRAMS[key] = compiled
