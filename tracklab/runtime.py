@@ -53,6 +53,12 @@ def _backend_started() -> bool:
     return bool(xla_bridge.backends_are_initialized())
 
 
+def not_in_xla_flags(options: dict) -> dict:
+    """The XLA options of ``options`` that XLA_FLAGS does not name: a flag the user set is theirs."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    return {k: v for k, v in options.items() if k not in flags}
+
+
 def configure(*, cpu_devices: int | None = None, eigen_threads: bool = False, fusion_emitters: bool = False,
               float64: bool = True) -> dict:
     """Set the process-wide JAX settings tracklab is measured with (see the module's doc).
@@ -63,17 +69,17 @@ def configure(*, cpu_devices: int | None = None, eigen_threads: bool = False, fu
     Returns the settings in force. Raises ``RuntimeError`` when JAX's backend has already
     started with a different device count (call it first).
     """
-    flags = os.environ.get("XLA_FLAGS", "")
-    want = []
-    if not eigen_threads and "xla_cpu_multi_thread_eigen" not in flags:
-        want.append("--xla_cpu_multi_thread_eigen=false")
-    if not fusion_emitters and "xla_cpu_use_fusion_emitters" not in flags:
-        want.append("--xla_cpu_use_fusion_emitters=false")
-    if "xla_force_host_platform_device_count" not in flags:
-        want.append(f"--xla_force_host_platform_device_count={int(cpu_devices or usable_cores())}")
+    want = {}
+    if not eigen_threads:
+        want["xla_cpu_multi_thread_eigen"] = "false"
+    if not fusion_emitters:
+        want["xla_cpu_use_fusion_emitters"] = "false"
+    want["xla_force_host_platform_device_count"] = int(cpu_devices or usable_cores())
+    want = not_in_xla_flags(want)
     started = _backend_started()
     if want and not started:
-        os.environ["XLA_FLAGS"] = " ".join([flags] + want).strip()
+        flags = [os.environ.get("XLA_FLAGS", "")] + [f"--{k}={v}" for k, v in want.items()]
+        os.environ["XLA_FLAGS"] = " ".join(flags).strip()
 
     import jax
 

@@ -44,7 +44,6 @@ cache); 0 when this process already holds it.
 
 from __future__ import annotations
 
-import os
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -56,6 +55,7 @@ import numpy as np
 
 from tracklab.montecarlo import programs
 from tracklab.montecarlo.samples import RunSamples
+from tracklab.runtime import not_in_xla_flags
 
 
 class World(NamedTuple):
@@ -66,7 +66,7 @@ class World(NamedTuple):
     lanes: int  # rows of ``exclude``
     chunk_size: int  # runs per chunk (a multiple of nothing in particular; padded for the devices)
     # XLA options its chunk programs compile with: (name, value) pairs; one that XLA_FLAGS names is
-    # left to XLA_FLAGS (as ``runtime.configure`` leaves a flag the user set)
+    # left to XLA_FLAGS (``runtime.not_in_xla_flags``, as ``configure`` leaves a flag the user set)
     compiler_options: tuple = ()
 
 
@@ -243,8 +243,7 @@ def program(world: World, params, precision: str = "float64", points: int | None
         args = (params, jax.random.key(0), jnp.zeros((B,), jnp.uint32), jnp.zeros((B,), bool),
                 jnp.zeros(lead + (world.lanes, B), bool))
         lowered = jax.jit(fn).lower(*args)
-        named = os.environ.get("XLA_FLAGS", "")
-        options = {k: v for k, v in world.compiler_options if k not in named} or None
+        options = not_in_xla_flags(dict(world.compiler_options)) or None
         if stored:
             compiled, here = programs.compile_here(lowered, options)
             if here:  # XLA compiled it in this process (not loaded by JAX from its own cache)
