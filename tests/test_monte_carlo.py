@@ -153,22 +153,22 @@ print(json.dumps({"devices": jax.device_count(),
 
 
 def test_statistics_do_not_depend_on_device_count(tmp_path, xla_flags):
-    """Runs split over 2 and 4 (forced host) devices give the statistics of one device, whatever
-    the chunk (100 runs over 2 devices; 301 runs padded with dead runs to fill 4). One device at
-    other chunk sizes: test_chunking_does_not_change_statistics."""
+    """Runs split over 4 (forced host) devices give the statistics of one device: 301 runs in one
+    chunk, padded with dead runs to fill the 4. Two devices, every world:
+    test_runner.test_statistics_do_not_depend_on_the_device_count; one device at other chunk
+    sizes: test_chunking_does_not_change_statistics."""
     path = write(tmp_path, POLAR)
     script = tmp_path / "dev.py"
     script.write_text(DEVICE_SCRIPT)
     ref = _flat(load_experiment(path).monte_carlo(chunk=301))
     assert jax.device_count() == 1
-    for devices, chunk in ((2, 100), (4, 301)):
-        env = dict(os.environ, XLA_FLAGS=xla_flags(devices))
-        out = subprocess.run([sys.executable, str(script), str(path), str(chunk)], env=env, capture_output=True,
-                             text=True, check=True)
-        doc = json.loads(out.stdout.strip().splitlines()[-1])
-        assert doc["devices"] == devices
-        for k, v in doc["sums"].items():
-            np.testing.assert_allclose(np.asarray(v, float), ref[k], rtol=1e-12, atol=1e-9, err_msg=f"{devices}: {k}")
+    env = dict(os.environ, XLA_FLAGS=xla_flags(4))
+    out = subprocess.run([sys.executable, str(script), str(path), "301"], env=env, capture_output=True, text=True,
+                         check=True)
+    doc = json.loads(out.stdout.strip().splitlines()[-1])
+    assert doc["devices"] == 4
+    for k, v in doc["sums"].items():
+        np.testing.assert_allclose(np.asarray(v, float), ref[k], rtol=1e-12, atol=1e-9, err_msg=k)
 
 
 def test_diverging_runs_are_counted_and_excluded():

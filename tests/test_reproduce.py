@@ -94,11 +94,12 @@ def test_reproduce_runs_everything_and_rebuilds_the_combined_table(tmp_path):
     assert (res / "tuning" / "kf_tuned" / "stats.json").exists()
     sweep_table = (res / "mismatch" / "c" / "table.md").read_text()
     assert sweep_table.count("| KF |") == 3 and sweep_table.count("| AB |") == 3
-    # again, into the folders it wrote (results, tuning report, tuned file, sweep): the same numbers
+    # again, into the folders it wrote (results, tuning report, tuned file, sweep), without figures: the same numbers
     before = {p.relative_to(res): p.read_text() for p in res.rglob("*.json")}
-    assert reproduce(d, res, log=lambda *a: None) == folders
+    assert reproduce(d, res, log=lambda *a: None, figures=False) == folders
     after = {p.relative_to(res): p.read_text() for p in res.rglob("*.json")}
     assert after.keys() == before.keys() and len(before) >= 6
+    assert not list(res.rglob("*.png"))  # the folders written again hold no figure of the first pass
     strip = lambda doc: {k: v for k, v in json.loads(doc).items() if k not in ("wall_s", "compile_s")}
     for name in before:
         assert strip(after[name]) == strip(before[name]), name
@@ -106,7 +107,8 @@ def test_reproduce_runs_everything_and_rebuilds_the_combined_table(tmp_path):
 
 def test_table_formats(tmp_path):
     d = _experiments(tmp_path)
-    folders = reproduce(d, tmp_path / "r", quick=True, log=lambda *a: None)
+    folders = reproduce(d, tmp_path / "r", quick=True, log=lambda *a: None, figures=False)
+    assert not list((tmp_path / "r").rglob("*.png"))
     md = combined_table(folders, "md", ("rmse_pos", "runs"))
     assert md.splitlines()[0] == "| results | filter | RMSE pos | runs |" and len(md.splitlines()) == 2 + 4
     csv = combined_table(folders, "csv", ("rmse_pos",))

@@ -155,7 +155,8 @@ def cmd_tune(args) -> int:
 
     run_tune(exp, names, steps=args.steps, lr=args.lr, loss=args.loss, runs_per_step=args.runs_per_step,
              labels=labels, out_toml=out, folder=folder,
-             log=lambda line: (raise_if_interrupted(), writes() and print(line, flush=True)), every=args.every)
+             log=lambda line: (raise_if_interrupted(), writes() and print(line, flush=True)), every=args.every,
+             figures=not args.no_figures)
     return 0
 
 
@@ -212,7 +213,8 @@ def cmd_reproduce(args) -> int:
     from tracklab.reproduce import reproduce
 
     out = args.out or (tempfile.mkdtemp(prefix="tracklab-quick-") if args.quick else "results")
-    folders = reproduce(args.experiments, out, quick=args.quick, max_memory=args.max_memory)
+    folders = reproduce(args.experiments, out, quick=args.quick, max_memory=args.max_memory,
+                        figures=not args.no_figures)
     print(f"{len(folders)} results folders and {Path(out) / 'README.md'} (combined table) rebuilt")
     return 0
 
@@ -263,6 +265,7 @@ def build_parser():
                                       "(default: results/<name>_tune/)")
     tu.add_argument("--out", help="tuned experiment file (default: <name>_tuned.toml beside the results folder)")
     tu.add_argument("--max-memory", type=_size, help="refuse a tuning needing more (default: this machine's memory)")
+    tu.add_argument("--no-figures", action="store_true", help="skip loss.png")
     tu.set_defaults(func=cmd_tune)
     sw = sub.add_parser("sweep", help="evaluate every filter on a grid of values of any numbers of the file, or of "
                                       "filter-parameter scale factors", parents=[many])
@@ -285,6 +288,7 @@ def build_parser():
     rp.add_argument("--experiments", default="experiments")
     rp.add_argument("--out", help="results folder (default results/, or a temporary one with --quick)")
     rp.add_argument("--max-memory", type=_size, help="refuse experiments needing more (default: this machine's memory)")
+    rp.add_argument("--no-figures", action="store_true", help="skip the PNG figures (the numbers alone)")
     rp.set_defaults(func=cmd_reproduce)
     ls = sub.add_parser("list", help="experiment files, filter kinds (with their sensors and parameters), sensors and scenarios")
     ls.add_argument("--dir", default="experiments", help="folder of experiment files")

@@ -52,20 +52,17 @@ def run_filter(flt: Filter, z, *, x0, P0, params=None, dt: float = 1.0, precisio
     with jax.enable_x64(precision == "float64"):
         dtype = jnp.float64 if precision == "float64" else jnp.float32
         params = in_precision(flt.params if params is None else params, precision)
-        z = jnp.asarray(z, dtype)
-        batched = z.ndim == 3
-        zb = z if batched else z[None]
-        N = zb.shape[0]
-        x0 = jnp.broadcast_to(jnp.asarray(x0, dtype), (N,) + np.shape(x0)[-1:])
-        P0 = jnp.broadcast_to(jnp.asarray(P0, dtype), (N,) + np.shape(P0)[-2:])
-        out = _run_filter_jit(flt.init, flt.step, params, zb, x0, P0, float(dt))
-        if not batched:
-            out = jax.tree_util.tree_map(lambda a: a[0], out)
+        z, x0, P0 = (jnp.asarray(a, dtype) for a in (z, x0, P0))
+        out = _run_filter_jit(flt.init, flt.step, params, z, x0, P0, float(dt), z.ndim == 3)
     return FilterResult(*out, layout=flt.layout)
 
 
-def _run_filter_impl(init, step, params, z, x0, P0, dt):
+def _run_filter_impl(init, step, params, z, x0, P0, dt, batched):
+    if not batched:  # one run: a batch of one, unbatched at the end
+        return jax.tree_util.tree_map(lambda a: a[0], _run_filter_impl(init, step, params, z[None], x0, P0, dt, True))
     N, T = z.shape[0], z.shape[1]
+    x0 = jnp.broadcast_to(x0, (N,) + x0.shape[-1:])
+    P0 = jnp.broadcast_to(P0, (N,) + P0.shape[-2:])
     state = jax.vmap(init, in_axes=(None, 0))(params, Prior(x0, P0))
     step = jax.vmap(step, in_axes=(None, 0, 0))
     t = dt * jnp.arange(1, T + 1, dtype=z.dtype)
@@ -79,4 +76,4 @@ def _run_filter_impl(init, step, params, z, x0, P0, dt):
     return tuple(jax.tree_util.tree_map(lambda a: jnp.swapaxes(a, 0, 1), out))
 
 
-_run_filter_jit = jax.jit(_run_filter_impl, static_argnums=(0, 1, 6))
+_run_filter_jit = jax.jit(_run_filter_impl, static_argnums=(0, 1, 6, 7))

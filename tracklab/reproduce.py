@@ -177,8 +177,10 @@ def _check_outputs(exps, jobs, experiments_dir: Path, results_dir: Path, quick, 
                 check_sweep(exp, axes, 4 if quick else study.runs, max_memory)
 
 
-def reproduce(experiments_dir="experiments", results_dir="results", quick=False, log=print, max_memory=None):
-    """Run every experiment file and its studies; return the results folders written, in order."""
+def reproduce(experiments_dir="experiments", results_dir="results", quick=False, log=print, max_memory=None,
+              figures=True):
+    """Run every experiment file and its studies (with their PNG figures if ``figures``); return
+    the results folders written, in order."""
     from tracklab.config import load_experiment
     from tracklab.errors import ConfigError
     from tracklab.studies import run_study
@@ -198,12 +200,12 @@ def reproduce(experiments_dir="experiments", results_dir="results", quick=False,
     _check_outputs(exps, jobs, folder, results_dir, quick, max_memory)
     for i, (exp, runs, out) in enumerate(jobs, start=1):
         log(f"[{i}/{len(jobs)}] {exp.name}: {runs or exp.runs} runs x {exp.steps} steps -> {out}")
-        doc = exp.run(runs=runs, out=out, max_memory=max_memory)
+        doc = exp.run(runs=runs, out=out, max_memory=max_memory, figures=figures)
         log(f"        {doc['wall_s']:.1f} s")
         folders.append(out)
         if out == results_dir / exp.name:  # its tuning and sweep studies, once per experiment file
             for study in exp.studies:
                 log(f"        study: {study.kind} -> {results_dir / study.out}")
-                run_study(exp, study, results_dir, quick=quick, log=log)
+                run_study(exp, study, results_dir, quick=quick, log=log, figures=figures)
     update_readme(results_dir / "README.md", combined_table(folders))
     return folders

@@ -41,9 +41,10 @@ def check_tune(exp, names, labels, out_toml, runs_per_step=None, max_memory=None
 
 
 def run_tune(exp, names, *, steps, lr, loss, runs_per_step, labels, out_toml: Path, folder: Path, log=print, every=10,
-             eval_runs=None):
-    """Tune, log progress lines, write the results folder (``tune_report``) and the tuned
-    experiment file, each atomically (process 0 alone, in a run of several); return the TuneResult."""
+             eval_runs=None, figures=True):
+    """Tune, log progress lines, write the results folder (``tune_report``; its loss.png only
+    with ``figures``) and the tuned experiment file, each atomically (process 0 alone, in a run of
+    several); return the TuneResult."""
     import sys
 
     from tracklab.runtime import writes
@@ -95,12 +96,12 @@ def run_tune(exp, names, *, steps, lr, loss, runs_per_step, labels, out_toml: Pa
     write_text_atomically(out_toml, text, verify)
     say(f"tuned experiment written to {written_to}")
     with atomic_folder(folder, exp.path, "--results") as tmp:
-        tune_report(exp, res, tmp, steps=steps, lr=lr, tuned_file=str(written_to), log_lines=lines)
+        tune_report(exp, res, tmp, steps=steps, lr=lr, tuned_file=str(written_to), log_lines=lines, figures=figures)
     log(f"tuning report written to {folder}/")
     return res
 
 
-def tune_report(exp, res, folder: Path, *, steps, lr, tuned_file, log_lines):
+def tune_report(exp, res, folder: Path, *, steps, lr, tuned_file, log_lines, figures=True):
     """A tuning's results folder: tune.json (settings, each filter's parameters and held-out loss
     before and after, every step's loss per filter), table.md, loss.png (each filter's loss per
     step in a panel of its own, the held-out values marked) and tune.log."""
@@ -140,7 +141,7 @@ def tune_report(exp, res, folder: Path, *, steps, lr, tuned_file, log_lines):
                f"{res.wall_s:.1f} s." + (f" {res.stopped}." if res.stopped else "") + "\n")
     (folder / "table.md").write_text("\n".join(rows) + "\n" + caption)
     (folder / "tune.log").write_text("\n".join(log_lines) + "\n")
-    if not res.history:
+    if not res.history or not figures:
         return
     plt = pyplot()
     fig, axs = plt.subplots(len(lanes), 1, figsize=(7.5, 2.4 * len(lanes) + 0.6), squeeze=False, sharex=True,
@@ -167,8 +168,9 @@ def tune_report(exp, res, folder: Path, *, steps, lr, tuned_file, log_lines):
     plt.close(fig)
 
 
-def run_study(exp, study, results_dir, quick=False, log=print):
-    """Rebuild one study under ``results_dir``; ``quick``: a few steps and runs, as a smoke check."""
+def run_study(exp, study, results_dir, quick=False, log=print, figures=True):
+    """Rebuild one study under ``results_dir``; ``quick``: a few steps and runs, as a smoke check;
+    ``figures``: with its PNG figures."""
     from tracklab.config import load_experiment
     from tracklab.config.paths import parse_grid
     from tracklab.sweep import sweep, write_sweep
@@ -180,14 +182,15 @@ def run_study(exp, study, results_dir, quick=False, log=print):
                  runs_per_step=min(study.runs_per_step, 4) if quick else study.runs_per_step,
                  labels=list(study.filters) if study.filters else None, out_toml=tuned,
                  folder=base.with_name(base.name + "_tune"), log=lambda line: log("        " + line),
-                 eval_runs=8 if quick else None)
+                 eval_runs=8 if quick else None, figures=figures)
         tuned_exp = load_experiment(tuned)
-        tuned_exp.run(runs=min(tuned_exp.runs, 20) if quick else None, out=base.with_name(base.name + "_tuned"))
+        tuned_exp.run(runs=min(tuned_exp.runs, 20) if quick else None, out=base.with_name(base.name + "_tuned"),
+                      figures=figures)
         return [tuned]
     axes = [parse_grid(g) for g in study.grid]
     if quick:
         axes = [type(a)(a.name, a.values[[0, -1]] if len(a.values) > 1 else a.values) for a in axes]
     doc = sweep(exp, axes, runs=4 if quick else study.runs)
-    write_sweep(exp, doc, base)
+    write_sweep(exp, doc, base, figures=figures)
     log(f"        sweep: {math.prod(len(a.values) for a in axes)} points x {doc['runs']} runs, {doc['wall_s']:.1f} s")
     return [base]

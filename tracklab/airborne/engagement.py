@@ -75,6 +75,17 @@ class Engagement:
                 jnp.stack([-a * s, a * c, zero], -1))
 
 
+def nominal_range(eng: Engagement, t) -> np.ndarray:
+    """The nominal target's range from the own aircraft at the host times ``t`` (float64, one
+    compiled program rather than an eager operation per step of ``target``)."""
+    with jax.enable_x64(True):
+        return np.asarray(_nominal_range(eng, jnp.asarray(t, jnp.float64)))
+
+
+@jax.jit
+def _nominal_range(eng, t):
+    return jnp.linalg.norm(eng.target(t)[0] - eng.own(t)[0], axis=-1)
+
 def singer_block(T, tau, sigma):
     """Exact discretisation (Φ, Q) of one Singer axis [p, v, a] over T, by Van Loan's method.
 

@@ -74,7 +74,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tracklab.airborne.engagement import Engagement
+from tracklab.airborne.engagement import Engagement, nominal_range
 from tracklab.config.fields import (MAX_RUN_STEPS, WINDOW_NAME_RE, Section, auto_runs, check_sections,
                                     experiment_header, level_and_baseline)
 from tracklab.errors import ConfigError
@@ -152,7 +152,7 @@ def parse_airborne(f: Path, raw: dict) -> AirborneExperiment:
     if eng.turn_end < eng.turn_start:
         raise ConfigError(f, "engagement.turn_end", eng.turn_end, f"must be >= turn_start ({eng.turn_start:g})")
     t = np.linspace(0.0, duration, int(min(duration / sample_dt, 100_000)) + 1)
-    r_min = float(np.min(np.linalg.norm(np.asarray(eng.target(t)[0] - eng.own(t)[0]), axis=-1)))
+    r_min = float(np.min(nominal_range(eng, t)))
     if r_min < 100.0:
         raise ConfigError(f, "[engagement]", f"{r_min:.0f} m", "the nominal range must stay above 100 m for the whole run")
     nz = Section(f, "noise", raw.get("noise", {}))

@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab.airborne.closed_loop import MRAD, SAMPLE_QUANTITIES
+from tracklab.airborne.engagement import nominal_range
 
 TRACKERS = {
     "cd_ekf": "joint continuous-discrete EKF on the 9-state boresight model, antenna command eq. 1",
@@ -161,8 +162,7 @@ class AirborneExperiment:
 
     def nominal_range(self):
         t = self.period * np.arange(1, self.steps + 1)
-        e = self.engagement
-        return np.linalg.norm(np.asarray(e.target(t)[0] - e.own(t)[0]), axis=-1)
+        return nominal_range(self.engagement, t)
 
     sweep_metrics = (("rmse_pos", "true pointing error RMS (mrad)"), ("rmse_vel", "LOS-rate error RMS (mrad/s)"),
                       ("nees", "average NEES (9 states)"))

@@ -240,8 +240,8 @@ def program(world: World, params, precision: str = "float64", points: int | None
         if points is not None:  # parts (points, devices, …)
             fn = jax.vmap(fn, in_axes=(0, None, None, None, 0))
             lead = (points,)
-        args = (params, jax.random.key(0), jnp.zeros((B,), jnp.uint32), jnp.zeros((B,), bool),
-                jnp.zeros(lead + (world.lanes, B), bool))
+        args = (params, jax.random.key(0), np.zeros((B,), np.uint32), np.zeros((B,), bool),
+                np.zeros(lead + (world.lanes, B), bool))
         lowered = jax.jit(fn).lower(*args)
         options = not_in_xla_flags(dict(world.compiler_options)) or None
         if stored:
@@ -348,7 +348,7 @@ def run(world: World, params, runs: int, key, *, precision: str = "float64", poi
         def combined(parts):
             return host_sums(parts, B, lead)
 
-        no_exclusion = jnp.zeros(((points,) if points is not None else ()) + (world.lanes, B), bool)
+        no_exclusion = np.zeros(((points,) if points is not None else ()) + (world.lanes, B), bool)
         for c in range(n_chunks):
             idx = np.arange((c * n_proc + me) * B, (c * n_proc + me + 1) * B, dtype=np.uint32)
             args = (params, key, jnp.asarray(idx), jnp.asarray(idx < runs))

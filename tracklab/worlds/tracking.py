@@ -762,15 +762,24 @@ def recorded_sums(out, truth, layout, windows: dict | None = None) -> dict:
     (N, T, 2·dim) in CV layout at the same steps, ``layout`` where position and velocity sit in
     the filter's state. A run with a NaN/inf estimate or a covariance that is not positive
     definite at any step is diverged and left out of every sum, as in a simulation."""
-    pv = cv_index(layout)
+    pv = tuple(int(i) for i in cv_index(layout))
     truth = jnp.asarray(truth)
+    windows = with_report_window(windows or {}, truth.shape[1])
+    lengths = _accumulated_lengths(len(pv) // 2, windows)
+    out = jax.tree_util.tree_map(jnp.asarray, out)
+    res = _recorded_sums(out, truth, jnp.asarray(_window_mask(windows)), jnp.asarray(lengths, truth.dtype), pv,
+                         tuple(windows))
+    return jax.tree_util.tree_map(np.asarray, res)
+
+
+@functools.partial(jax.jit, static_argnums=(4, 5))
+def _recorded_sums(out, truth, wmask, lengths, pv, names):
+    """``recorded_sums`` as one program (compiled once per shape)."""
+    pv = np.asarray(pv)
     dtype = truth.dtype
-    N, T = truth.shape[:2]
+    N = truth.shape[0]
     d = len(pv) // 2
-    windows = with_report_window(windows or {}, T)
-    names = list(windows)
-    wmask = jnp.asarray(_window_mask(windows))
-    xs = (jax.tree_util.tree_map(lambda a: jnp.swapaxes(jnp.asarray(a), 0, 1), out), jnp.swapaxes(truth, 0, 1), wmask)
+    xs = (jax.tree_util.tree_map(lambda a: jnp.swapaxes(a, 0, 1), out), jnp.swapaxes(truth, 0, 1), wmask)
     errors = jax.vmap(lambda o, t: run_errors(o, t, pv, dtype), out_axes=-1)  # over the runs, runs last
 
     def bad_of(bad_any, inp):
@@ -786,18 +795,17 @@ def recorded_sums(out, truth, layout, windows: dict | None = None) -> dict:
         acc = acc + _run_samples(r, w_k.astype(dtype))
         return (runmax, acc), (sums, maxima)
 
-    lengths = _accumulated_lengths(d, windows)
-    carry0 = (jnp.zeros((len(names), d + 1, N), dtype), jnp.zeros((len(lengths), N), dtype))
+    carry0 = (jnp.zeros((len(names), d + 1, N), dtype), jnp.zeros((lengths.shape[0], N), dtype))
     (runmax, acc), (sums, maxima) = jax.lax.scan(step, carry0, xs)
     res = _named(sums, _SUMS, d) | _named(maxima, _MAXIMA, d)
     for j, name in enumerate(names):
         res[f"runmax_pred@{name}"] = jnp.sum(jnp.where(~diverged, runmax[j], 0.0), axis=-1)
     res["diverged"] = jnp.sum(diverged.astype(dtype))
-    res["example_x"] = jnp.asarray(out.x)[0][:, pv]
-    res["example_var"] = jnp.diagonal(jnp.asarray(out.P)[0][:, pv[:, None], pv[None, :]], axis1=-2, axis2=-1)
-    values = jnp.concatenate([acc / jnp.asarray(lengths, dtype)[:, None], runmax.reshape(-1, N)])
+    res["example_x"] = out.x[0][:, pv]
+    res["example_var"] = jnp.diagonal(out.P[0][:, pv[:, None], pv[None, :]], axis1=-2, axis2=-1)
+    values = jnp.concatenate([acc / lengths[:, None], runmax.reshape(-1, N)])
     res["per_run"] = {"values": values, "ok": ~diverged, "kept": jnp.sqrt(values[:1])}
-    return jax.tree_util.tree_map(np.asarray, res)
+    return res
 
 
 def _window_mean(x, window):
@@ -945,17 +953,17 @@ def pcrlb(scenario, P0_cv, info_pos):
     lg = scenario.linear_gaussian()
     if lg is None:
         return None
-    F, Q = (jnp.asarray(a) for a in lg)
+    F, Q = (np.asarray(a, float) for a in lg)
     pos = np.arange(scenario.dim) * 2
-    Jz = jnp.zeros((len(info_pos),) + P0_cv.shape).at[:, pos[:, None], pos[None, :]].set(jnp.asarray(info_pos))
-
-    Fs = F if F.ndim == 3 else jnp.broadcast_to(F, (len(info_pos),) + F.shape)
-    return np.asarray(_pcrlb_recursion(jnp.asarray(P0_cv), Q, Fs, Jz))
+    Jz = np.zeros((len(info_pos),) + np.shape(P0_cv))
+    Jz[:, pos[:, None], pos[None, :]] = np.asarray(info_pos)
+    Fs = F if F.ndim == 3 else np.broadcast_to(F, (len(info_pos),) + F.shape)
+    return np.asarray(_pcrlb_recursion(np.asarray(P0_cv, float), Q, Fs, Jz))
 
 
 @jax.jit
 def _pcrlb_recursion(P0, Q, Fs, Jz):
-    """J⁻¹ per step (compiled once per shape, not per call)."""
+    """J⁻¹ per step (compiled once per shape, not per call; its inputs built on the host)."""
 
     def step(Jinv, inp):
         Jz_k, F_k = inp
