@@ -49,11 +49,15 @@ def _in_new_process(tmp_path, store, paths, jax_cache=None):
 def test_a_program_kept_on_disk_gives_the_same_statistics_in_a_new_process(tmp_path):
     """Each world's program, compiled in one process and kept, is loaded by the next one (no
     tracing, no compiling) and gives the first process's sums exactly; the numbers are inputs,
-    so a file with another value loads the same program."""
-    store = tmp_path / "programs"
+    so a file with another value loads the same program. A truncated file in the folder is
+    ignored: its program is compiled and written anew, and the next process loads it. A program
+    JAX loaded from its own persistent cache (which serialises without some of its kernels) is
+    never kept. The statistics are the same every time."""
+    store, jax_cache = tmp_path / "programs", tmp_path / "jax"
     texts = {"tracking": TRACKING, "airborne": AIRBORNE, "servo": SERVO}
     paths = [_write(tmp_path, n, t) for n, t in texts.items()]
-    first = _in_new_process(tmp_path, store, paths)
+    tracking = str(paths[0])
+    first = _in_new_process(tmp_path, store, paths, jax_cache)  # JAX's cache empty: XLA compiles each here
     kept = sorted(store.glob("*" + programs.SUFFIX))
     assert first["loaded"] == 0 and len(kept) == 3
     edited = _write(tmp_path, "edited", TRACKING.replace("sigma_r = 50.0", "sigma_r = 120.0"))
@@ -64,6 +68,17 @@ def test_a_program_kept_on_disk_gives_the_same_statistics_in_a_new_process(tmp_p
     ref = _sums(load_experiment(edited), 3)  # compiled here, in this process
     for k, v in ref.items():
         np.testing.assert_allclose(second[str(edited)][k], v, rtol=1e-12, atol=1e-12, err_msg=k)
+    for f in kept:  # every kept file truncated: the tracking world's is compiled again and written anew
+        f.write_bytes(f.read_bytes()[:1000])
+    again = _in_new_process(tmp_path, store, [tracking])
+    assert again["loaded"] == 0 and sum(f.stat().st_size > 100_000 for f in kept) == 1
+    loaded = _in_new_process(tmp_path, store, [tracking])
+    assert loaded["loaded"] == 1
+    other = tmp_path / "other"  # the program is in JAX's cache: JAX loads it, nothing is stored
+    from_jax = _in_new_process(tmp_path, other, [tracking], jax_cache)
+    assert from_jax["loaded"] == 0 and not list(other.glob("*" + programs.SUFFIX))
+    for doc in (again, loaded, from_jax):
+        assert doc[tracking] == first[tracking]
 
 
 def test_a_filter_of_ones_own_is_never_kept(tmp_path):
@@ -79,24 +94,3 @@ def test_a_filter_of_ones_own_is_never_kept(tmp_path):
         assert not list((tmp_path / "programs").glob("*" + programs.SUFFIX))
     finally:
         programs.keep_in(session)
-
-
-def test_an_unreadable_program_is_compiled_again_and_one_from_jax_cache_is_not_kept(tmp_path):
-    """A truncated file in the folder is ignored: the program is compiled and the file written
-    anew, and the next process loads it. A program JAX loaded from its own persistent cache
-    (which serialises without some of its kernels) is never stored. The statistics are the
-    same every time."""
-    path = _write(tmp_path, "tracking", TRACKING)
-    store, jax_cache = tmp_path / "programs", tmp_path / "jax"
-    first = _in_new_process(tmp_path, store, [path], jax_cache)
-    (kept,) = store.glob("*" + programs.SUFFIX)
-    kept.write_bytes(kept.read_bytes()[:1000])
-    again = _in_new_process(tmp_path, store, [path])
-    assert again["loaded"] == 0 and kept.stat().st_size > 100_000  # written anew
-    loaded = _in_new_process(tmp_path, store, [path])
-    assert loaded["loaded"] == 1
-    other = tmp_path / "other"  # the program is in JAX's cache now: JAX loads it, nothing is stored
-    from_jax = _in_new_process(tmp_path, other, [path], jax_cache)
-    assert from_jax["loaded"] == 0 and not list(other.glob("*" + programs.SUFFIX))
-    for doc in (again, loaded, from_jax):
-        assert doc[str(path)] == first[str(path)]

@@ -65,14 +65,24 @@ def write(tmp_path, text, name="exp.toml"):
                                         (["alpha", "beta"], "mse_pos"), (["lam"], "mse_pos")])
 def test_gradient_matches_central_differences(tmp_path, names, loss):
     """d(loss)/d(theta) by autodiff through simulate -> filter -> statistics equals central differences,
-    in the mode tune takes for the selection (forward for alpha, beta and lam, reverse for q, r)."""
+    in the mode tune takes for the selection (forward for alpha, beta and lam, reverse for q, r).
+    For q, r with the nll loss, the forward-mode gradient too (as if the selection were one number)
+    equals the reverse-mode one: the loss, each filter's term and every component, on three filters
+    of three kinds."""
     exp = load_experiment(write(tmp_path, GRAD))
     obj = objective(exp, names, loss)
     key, idx, live = jax.random.key(0), jnp.arange(64, dtype=jnp.uint32), jnp.ones(64, bool)
-    total = lambda *a: sum(obj.losses(*a).values())
-    value_and_grad = jax.jit(gradient(lambda *a: (total(*a), None), numbers(obj.theta0)))
+
+    def total(*a):
+        per = obj.losses(*a)
+        return sum(per.values()), per
+
+    n = numbers(obj.theta0)
+    assert tuned_numbers(exp, obj.chosen) == n  # as the memory check counts them, before tracing
+    value_and_grad = jax.jit(gradient(total, n))
     f = lambda *a: value_and_grad(*a)[0][0]  # the loss, from the same program (one compile, not two)
-    g, _ = jax.flatten_util.ravel_pytree(value_and_grad(obj.theta0, key, idx, live)[1])
+    (value, per), grad = value_and_grad(obj.theta0, key, idx, live)
+    g, _ = jax.flatten_util.ravel_pytree(grad)
     flat, unravel = jax.flatten_util.ravel_pytree(obj.theta0)
     checked = 0
     for i in range(len(flat)):
@@ -83,32 +93,17 @@ def test_gradient_matches_central_differences(tmp_path, names, loss):
         np.testing.assert_allclose(float(g[i]), float(fd), rtol=1e-4)
         checked += 1
     assert checked >= 1
-
-
-def test_forward_and_reverse_mode_give_one_gradient(tmp_path):
-    """tune's forward-mode gradient (few tuned numbers) equals its reverse-mode one (many), which
-    the test above checks against central differences: the loss, each filter's term and every
-    component of the gradient, on three filters of three kinds."""
-    exp = load_experiment(write(tmp_path, GRAD))
-    obj = objective(exp, ["q", "r"], "nll")
-    args = (obj.theta0, jax.random.key(3), jnp.arange(32, dtype=jnp.uint32), jnp.ones(32, bool))
-
-    def total(*a):
-        per = obj.losses(*a)
-        return sum(per.values()), per
-
-    n = numbers(obj.theta0)
-    assert tuned_numbers(exp, obj.chosen) == n  # as the memory check counts them, before tracing
-    assert n > FORWARD_UP_TO  # this selection alone would take reverse mode
-    (v_fwd, per_fwd), g_fwd = jax.jit(gradient(total, 1))(*args)  # as if it were one number: forward
-    (v_rev, per_rev), g_rev = jax.jit(gradient(total, n))(*args)
-    np.testing.assert_allclose(float(v_fwd), float(v_rev), rtol=1e-12)
-    for l in per_rev:
-        np.testing.assert_allclose(float(per_fwd[l]), float(per_rev[l]), rtol=1e-12)
+    if loss != "nll":
+        return
+    assert n > FORWARD_UP_TO  # this selection alone takes reverse mode
+    (v_fwd, per_fwd), g_fwd = jax.jit(gradient(total, 1))(obj.theta0, key, idx, live)  # forward mode
+    np.testing.assert_allclose(float(v_fwd), float(value), rtol=1e-12)
+    assert per.keys() == per_fwd.keys() == {"KF", "explicit", "kalata"}
+    for l in per:
+        np.testing.assert_allclose(float(per_fwd[l]), float(per[l]), rtol=1e-12)
     flat_fwd, _ = jax.flatten_util.ravel_pytree(g_fwd)
-    flat_rev, _ = jax.flatten_util.ravel_pytree(g_rev)
-    assert flat_fwd.shape == flat_rev.shape == (n,) and np.all(np.abs(flat_rev) > 0)
-    np.testing.assert_allclose(np.asarray(flat_fwd), np.asarray(flat_rev), rtol=1e-9)
+    assert flat_fwd.shape == g.shape == (n,) and np.all(np.abs(g) > 0)
+    np.testing.assert_allclose(np.asarray(flat_fwd), np.asarray(g), rtol=1e-9)
 
 
 AB = """
