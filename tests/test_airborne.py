@@ -345,21 +345,3 @@ def test_moose_that_cannot_switch_is_the_joint_ekf():
     (xe, Pe), (xm, Pm) = jax.jit(lambda: (run(cd_ekf(tm), base), run(moose(tm), mparams)))()
     np.testing.assert_allclose(np.asarray(xm), np.asarray(xe), rtol=1e-10, atol=1e-13)
     np.testing.assert_allclose(np.asarray(Pm), np.asarray(Pe), rtol=1e-10, atol=1e-16)
-
-
-def test_airborne_statistics_do_not_depend_on_the_chunk_size(tmp_path):
-    """Run i's key is the same whatever the chunking; padded runs are masked out."""
-    path = tmp_path / "classical.toml"
-    path.write_text(EXPERIMENT.split("[[tracker]]")[0] + '[[tracker]]\nlabel = "classical"\nkind = "classical"\n')
-    exp = load_experiment(path)
-    exp.chunk = 12
-    whole = exp.monte_carlo()
-    exp.chunk = 5  # 3 chunks, the last one padded with 3 masked runs
-    chunked = exp.monte_carlo()
-    for key, v in whole.sums["classical"].items():
-        # equal up to the order of floating-point sums (a wrong or missing run is off by far more)
-        np.testing.assert_allclose(chunked.sums["classical"][key], v, rtol=1e-10, atol=1e-12, err_msg=key)
-    a, b = whole.samples.pair(0, 0), chunked.samples.pair(0, 0)  # the runs' samples, behind the intervals
-    assert a.n == b.n
-    np.testing.assert_allclose(b.mean_f, a.mean_f, rtol=1e-12)  # NaN: the classical loops have no NEES
-    np.testing.assert_allclose(b.cov_ff, a.cov_ff, rtol=1e-9, atol=1e-12 * np.nanmax(np.abs(a.cov_ff)))

@@ -117,7 +117,7 @@ def test_dekf_as_an_experiment_filter_on_the_sine_target(tmp_path):
     (tmp_path / "d.toml").write_text("""
 [experiment]
 name = "dekf"
-runs = 40
+runs = 16
 dt = 0.01
 steps = 1500
 
