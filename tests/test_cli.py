@@ -269,13 +269,19 @@ def test_out_is_an_existing_file(tmp_path):
         pytest.param(("--seed", "x"), id="seed-abc"),
     ],
 )
-def test_bad_arguments_refused_by_argparse(tmp_path, args):
+def test_bad_arguments_refused_by_argparse(tmp_path, monkeypatch, capsys, args):
+    """The command's main in this process (a refusal in a process of its own: test_no_command_is_refused)."""
+    from tracklab.cli import main
+
     (tmp_path / "small.toml").write_text(VALID)
-    proc = tracklab("run", "small.toml", *args, "--out", "out", cwd=tmp_path)
-    assert proc.returncode == 2
-    lines = proc.stderr.splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error: tracklab run:"), proc.stderr
-    assert args[0] in proc.stderr and "Traceback" not in proc.stderr
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_:
+        main(["run", "small.toml", *args, "--out", "out"])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: tracklab run:"), err
+    assert args[0] in err and "Traceback" not in err
     assert not (tmp_path / "out").exists()
 
 
