@@ -61,6 +61,21 @@ def tracklab(*args, cwd, timeout=300):
                           timeout=timeout)
 
 
+def in_process(*args, cwd, monkeypatch, capsys):
+    """``tracklab ARGS`` as the command's ``main`` in this process (the process around it is
+    ``sys.exit(main())``): a CompletedProcess with its exit code and what it printed."""
+    from tracklab.cli import main
+
+    monkeypatch.chdir(cwd)
+    capsys.readouterr()
+    try:
+        code = main([str(a) for a in args])
+    except SystemExit as e:  # argparse's refusals
+        code = e.code
+    out, err = capsys.readouterr()
+    return subprocess.CompletedProcess(args, code, out, err)
+
+
 def tracklab_parallel(arg_lists, *, cwd, timeout=300):
     procs = [
         subprocess.Popen([*_command(), *map(str, args)], cwd=cwd, text=True,
@@ -193,6 +208,9 @@ def test_seed_reproducible_and_changes_numbers(valid_run, tmp_path):
 
 
 # --- bad input ----------------------------------------------------------------------------------
+# The command's main in this process (``in_process``): each refusal is made there, and the process
+# around it only exits with main's code. Refusals in a process of their own:
+# test_out_is_an_existing_file, test_no_command_is_refused.
 
 
 def _bad(text=None, csv=None, args=()):
@@ -219,7 +237,7 @@ BAD = [
 
 
 @pytest.mark.parametrize("bad, expect", BAD)
-def test_bad_file_one_line_exit_2_results_untouched(tmp_path, bad, expect):
+def test_bad_file_one_line_exit_2_results_untouched(tmp_path, monkeypatch, capsys, bad, expect):
     exp = tmp_path / ("missing.toml" if bad["text"] is None else "bad.toml")
     if bad["text"] is not None:
         exp.write_text(bad["text"])
@@ -232,7 +250,8 @@ def test_bad_file_one_line_exit_2_results_untouched(tmp_path, bad, expect):
     (out / "nested" / "keep.txt").write_text("keep me")
     before_out, before_root = snapshot(out), sorted(p.name for p in tmp_path.iterdir())
 
-    proc = tracklab("run", exp.name, "--out", "results", "--no-figures", *bad["args"], cwd=tmp_path)
+    proc = in_process("run", exp.name, "--out", "results", "--no-figures", *bad["args"], cwd=tmp_path,
+                      monkeypatch=monkeypatch, capsys=capsys)
 
     assert "Traceback" not in proc.stderr, proc.stderr
     assert proc.returncode == 2, proc.stderr
@@ -270,18 +289,12 @@ def test_out_is_an_existing_file(tmp_path):
     ],
 )
 def test_bad_arguments_refused_by_argparse(tmp_path, monkeypatch, capsys, args):
-    """The command's main in this process (a refusal in a process of its own: test_no_command_is_refused)."""
-    from tracklab.cli import main
-
     (tmp_path / "small.toml").write_text(VALID)
-    monkeypatch.chdir(tmp_path)
-    with pytest.raises(SystemExit) as exit_:
-        main(["run", "small.toml", *args, "--out", "out"])
-    assert exit_.value.code == 2
-    err = capsys.readouterr().err
-    lines = err.splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error: tracklab run:"), err
-    assert args[0] in err and "Traceback" not in err
+    proc = in_process("run", "small.toml", *args, "--out", "out", cwd=tmp_path, monkeypatch=monkeypatch, capsys=capsys)
+    assert proc.returncode == 2
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: tracklab run:"), proc.stderr
+    assert args[0] in proc.stderr and "Traceback" not in proc.stderr
     assert not (tmp_path / "out").exists()
 
 
