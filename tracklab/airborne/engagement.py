@@ -86,6 +86,7 @@ def nominal_range(eng: Engagement, t) -> np.ndarray:
 def _nominal_range(eng, t):
     return jnp.linalg.norm(eng.target(t)[0] - eng.own(t)[0], axis=-1)
 
+
 def singer_block(T, tau, sigma):
     """Exact discretisation (Φ, Q) of one Singer axis [p, v, a] over T, by Van Loan's method.
 

@@ -348,7 +348,7 @@ def run(world: World, params, runs: int, key, *, precision: str = "float64", poi
         def combined(parts):
             return host_sums(parts, B, lead)
 
-        no_exclusion = np.zeros(((points,) if points is not None else ()) + (world.lanes, B), bool)
+        no_exclusion = jnp.asarray(np.zeros(((points,) if points is not None else ()) + (world.lanes, B), bool))
         for c in range(n_chunks):
             idx = np.arange((c * n_proc + me) * B, (c * n_proc + me + 1) * B, dtype=np.uint32)
             args = (params, key, jnp.asarray(idx), jnp.asarray(idx < runs))
