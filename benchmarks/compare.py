@@ -120,14 +120,21 @@ def model_matrices(exp):
 # ----------------------------------------------------------------------------- tracklab
 
 
-def tracklab_e2e(exp, runs, chunk, repeat):
-    """Simulate + filter + statistics, chunk by chunk, as ``runner.run`` does it, with the program
-    ``runner.program`` compiled for the experiment's structure at this chunk size."""
+def _time_tracklab(exp, runs, chunk, repeat):
+    """``bench_lidar.time_program`` on the tracking world of the experiment's structure at ``chunk``."""
     from bench_lidar import time_program
     from tracklab.worlds import tracking
 
     structure = exp.structure(chunk=chunk)
-    t = time_program(tracking.world(structure), exp.params(), runs, seed=0, repeat=repeat)
+    return structure, time_program(tracking.world(structure), exp.params(), runs, seed=0, repeat=repeat)
+
+
+def tracklab_e2e(exp, runs, chunk, repeat):
+    """Simulate + filter + statistics, chunk by chunk, as ``runner.run`` does it, with the program
+    ``runner.program`` compiled for the experiment's structure at this chunk size."""
+    from tracklab.worlds import tracking
+
+    structure, t = _time_tracklab(exp, runs, chunk, repeat)
     assert not t["held"], "the program was already compiled in this process: its compile time would read 0"
     return {"wall_s": t["wall_s"], "compile_s": t["compile_s"], "chunk": chunk,
             "sums": tracking.unpack(t["sums"], exp.dim)[structure.labels[0]]}
@@ -135,10 +142,7 @@ def tracklab_e2e(exp, runs, chunk, repeat):
 
 def tracklab_pass(exp, runs, chunk):
     """One timed pass over ``runs`` runs with the program ``tracklab_e2e`` compiled at ``chunk``: wall s."""
-    from bench_lidar import time_program
-    from tracklab.worlds import tracking
-
-    return time_program(tracking.world(exp.structure(chunk=chunk)), exp.params(), runs, seed=0, repeat=1)["wall_s"]
+    return _time_tracklab(exp, runs, chunk, 1)[1]["wall_s"]
 
 
 def tracklab_reference(exp, data, n):

@@ -12,6 +12,8 @@ from tracklab.metrics import statistics
 from tracklab.config.paths import parse_grid
 from tracklab.sweep import sweep
 
+from test_cli import in_process
+
 EXP = """
 [experiment]
 name = "mismatch"
@@ -69,7 +71,7 @@ def test_bad_grids_are_refused(spec):
         parse_grid(spec)
 
 
-def test_cli_sweep(tmp_path, capsys):
+def test_cli_sweep(tmp_path, monkeypatch, capsys):
     path = tmp_path / "exp.toml"
     path.write_text(textwrap.dedent(EXP))
     proc = subprocess.run([sys.executable, "-m", "tracklab.cli", "sweep", str(path), "--grid", "q=0.1:10:2",
@@ -77,12 +79,9 @@ def test_cli_sweep(tmp_path, capsys):
     assert proc.returncode == 0, proc.stderr
     for f in ("sweep.json", "table.md", "table.csv", "sweep_rmse_pos.png", "sweep_nees.png"):
         assert (tmp_path / "sw" / f).exists(), f
-    from tracklab.cli import main  # a refusal, from the command's main in this process
-
-    capsys.readouterr()
-    assert main(["sweep", str(path), "--grid", "q=1:2"]) == 2
-    err = capsys.readouterr().err
-    assert err.startswith("error:") and "--grid" in err and len(err.splitlines()) == 1
+    bad = in_process("sweep", path, "--grid", "q=1:2", cwd=tmp_path, monkeypatch=monkeypatch, capsys=capsys)
+    assert bad.returncode == 2 and bad.stderr.startswith("error:") and "--grid" in bad.stderr
+    assert len(bad.stderr.splitlines()) == 1
 
 
 def test_a_curve_that_barely_moves_is_drawn_flat():

@@ -16,6 +16,8 @@ from tracklab.config import load_experiment
 from tracklab.filters import kalata_alpha_beta
 from tracklab.tune import FORWARD_UP_TO, gradient, numbers, objective, tune, tuned_numbers
 
+from test_cli import in_process
+
 GRAD = """
 [experiment]
 name = "grad"
@@ -231,15 +233,12 @@ def test_tune_compiles_its_gradient_and_its_evaluation_once(tmp_path, xla_flags)
 
 def test_cli_tune_writes_an_experiment_that_runs(tmp_path, monkeypatch, capsys):
     """The command's main in this process (its own process: test_cli, test_processes)."""
-    from tracklab.cli import main
-
     src = write(tmp_path, QR)
     out = tmp_path / "tuned.toml"
-    monkeypatch.chdir(tmp_path)
-    assert main(["tune", str(src), "--params", "q,r", "--steps", "30", "--lr", "0.1", "--loss", "nll",
-                 "--out", str(out)]) == 0
-    printed = capsys.readouterr().out
-    assert "step" in printed and "KF: held-out nll" in printed
+    proc = in_process("tune", src, "--params", "q,r", "--steps", 30, "--lr", 0.1, "--loss", "nll", "--out", out,
+                      cwd=tmp_path, monkeypatch=monkeypatch, capsys=capsys)
+    assert proc.returncode == 0, proc.stderr
+    assert "step" in proc.stdout and "KF: held-out nll" in proc.stdout
     report = tmp_path / "results" / "qr_tune"  # the tuning's results folder, by default under results/
     doc = json.loads((report / "tune.json").read_text())
     assert doc["heldout"]["KF"]["after"] < doc["heldout"]["KF"]["before"]
@@ -251,18 +250,18 @@ def test_cli_tune_writes_an_experiment_that_runs(tmp_path, monkeypatch, capsys):
     assert f["accel_sigma"] > 1.0 and all(s < 60.0 for s in f["sigma"])  # moved towards the truth (3, 20)
     exp = load_experiment(out)  # a valid experiment file
     assert exp.name == "qr_tuned"
-    assert main(["run", str(out), "--runs", "20", "--no-figures", "--out", str(tmp_path / "res")]) == 0
+    run = in_process("run", out, "--runs", 20, "--no-figures", "--out", tmp_path / "res", cwd=tmp_path,
+                     monkeypatch=monkeypatch, capsys=capsys)
+    assert run.returncode == 0, run.stderr
     assert (tmp_path / "res" / "stats.json").exists()
 
 
 @pytest.mark.parametrize("args,field", [(("--params", "zeta"), "--params"), (("--params", "q", "--loss", "l1"), "--loss"),
                                         (("--params", "alpha"), "--params")])
 def test_cli_tune_refuses_bad_requests(tmp_path, monkeypatch, capsys, args, field):
-    from tracklab.cli import main
-
     src = write(tmp_path, QR)
-    monkeypatch.chdir(tmp_path)
-    assert main(["tune", str(src), *args, "--steps", "2"]) == 2
-    lines = capsys.readouterr().err.strip().splitlines()
+    proc = in_process("tune", src, *args, "--steps", 2, cwd=tmp_path, monkeypatch=monkeypatch, capsys=capsys)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error:") and field in lines[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.toml"]  # nothing written

@@ -103,8 +103,8 @@ def run_tune(exp, names, *, steps, lr, loss, runs_per_step, labels, out_toml: Pa
 
 def tune_report(exp, res, folder: Path, *, steps, lr, tuned_file, log_lines, figures=True):
     """A tuning's results folder: tune.json (settings, each filter's parameters and held-out loss
-    before and after, every step's loss per filter), table.md, loss.png (each filter's loss per
-    step in a panel of its own, the held-out values marked) and tune.log."""
+    before and after, every step's loss per filter), table.md, tune.log and, with ``figures``,
+    loss.png (each filter's loss per step in a panel of its own, the held-out values marked)."""
     from tracklab.figures import pyplot
     from tracklab.report import md_cell, write_json
 

@@ -243,13 +243,9 @@ def program(world: World, params, precision: str = "float64", points: int | None
         args = (params, jax.random.key(0), np.zeros((B,), np.uint32), np.zeros((B,), bool),
                 np.zeros(lead + (world.lanes, B), bool))
         lowered = jax.jit(fn).lower(*args)
-        options = not_in_xla_flags(dict(world.compiler_options)) or None
-        if stored:
-            compiled, here = programs.compile_here(lowered, options)
-            if here:  # XLA compiled it in this process (not loaded by JAX from its own cache)
-                programs.store(stored, compiled)
-        else:
-            compiled = lowered.compile(compiler_options=options)
+        compiled, here = programs.compile_here(lowered, not_in_xla_flags(dict(world.compiler_options)) or None)
+        if stored and here:  # XLA compiled it in this process (not loaded by JAX from its own cache)
+            programs.store(stored, compiled)
     compile_s = time.perf_counter() - t0
     compiles += 1
     _PROGRAMS[key] = compiled
