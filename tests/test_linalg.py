@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from tracklab.filters.core import symmetrise
-from tracklab.linalg import expm, jacobian, mm, solve
+from tracklab.linalg import expm, host_expm, jacobian, mm, solve
 from tracklab.models import cv
 
 
@@ -45,7 +45,8 @@ def test_jacobian_equals_jacfwd():
 @pytest.mark.parametrize("scale", [1e-3, 0.05, 1.0, 5.0])
 def test_expm_equals_the_eigendecomposition_under_vmap(scale):
     """Symmetric matrices, whose exponential is V e^Λ Vᵀ (NumPy), over norms that need no squaring up
-    to several; and a non-normal upper-triangular 2 × 2 against its closed form."""
+    to several; and a non-normal upper-triangular 2 × 2 against its closed form. The same for
+    ``host_expm``."""
     rng = np.random.default_rng(3)
     X = rng.normal(size=(5, 6, 6)) * scale
     S = (X + np.swapaxes(X, 1, 2)) / 2
@@ -56,6 +57,9 @@ def test_expm_equals_the_eigendecomposition_under_vmap(scale):
     T = np.array([[a, b], [0.0, c]])
     closed = np.array([[np.exp(a), b * (np.exp(a) - np.exp(c)) / (a - c)], [0.0, np.exp(c)]])
     np.testing.assert_allclose(expm(jnp.asarray(T)), closed, rtol=1e-12)
+    for Si, wi in zip(S, want):  # the host's, NumPy in float64
+        np.testing.assert_allclose(host_expm(Si), wi, rtol=1e-12 * max(1.0, scale), atol=1e-15)
+    np.testing.assert_allclose(host_expm(T), closed, rtol=1e-12)
 
 
 def test_expm_beyond_its_squarings_is_nan():

@@ -161,6 +161,29 @@ def solve(A, B):
     return out[:, 0] if vec else out
 
 
+def _taylor_theta(degree):
+    """The largest 1-norm θ at which the Taylor polynomial of ``degree`` is exact to double precision
+    (θ^(degree+1)/(degree+1)! ≤ 10⁻¹⁶; 0.068 for degree 8)."""
+    return math.exp((math.lgamma(degree + 2) - 16 * math.log(10)) / (degree + 1))
+
+
+def host_expm(A, degree=8):
+    """``expm``'s scaling and squaring in float64 NumPy on the host, as many squarings as the norm
+    needs: for the few exponentials a world's parameters are built from (an eager
+    ``jax.scipy.linalg.expm`` compiles a program for each of its operations, about 1 s)."""
+    A = np.asarray(A, np.float64)
+    norm1 = np.abs(A).sum(axis=0).max()
+    s = int(np.ceil(np.log2(norm1 / _taylor_theta(degree)))) if norm1 > 0 else 0
+    X = A / 2.0 ** max(s, 0)
+    eye = np.eye(A.shape[-1])
+    E = eye
+    for i in range(degree):  # Horner
+        E = eye + X @ E / (degree - i)
+    for _ in range(max(s, 0)):
+        E = E @ E
+    return E
+
+
 def expm(A, degree=8, max_squarings=10):
     """The matrix exponential of a small square A by scaling and squaring a Taylor polynomial.
 
@@ -172,7 +195,7 @@ def expm(A, degree=8, max_squarings=10):
     solve per run. NaN where the norm needs more than ``max_squarings`` squarings.
     """
     n = A.shape[-1]
-    theta = math.exp((math.lgamma(degree + 2) - 16 * math.log(10)) / (degree + 1))
+    theta = _taylor_theta(degree)
     norm1 = jnp.max(jnp.sum(jnp.abs(A), axis=-2))
     s = jnp.clip(jnp.ceil(jnp.log2(norm1 / theta)), 0, max_squarings)
     X = A / 2.0**s

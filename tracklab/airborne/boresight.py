@@ -60,16 +60,17 @@ def drift(x, w_a, a_m, mp: ModelParams, levels=None):
 
     ``levels`` u = (u_e, u_d, u_r) are Moose's manoeuvre commands: mean
     accelerations added to the Singer ones where they drive ω and r̈.
+
+    Component by component, so that x may carry trailing axes (x: (9, ...), the inputs broadcasting
+    against them): ``cd_ekf`` pushes a state's tangent columns through it that way.
     """
     u = jnp.zeros(3, x.dtype) if levels is None else levels
     r, rdot = x[R], x[RDOT]
-    eps_dot = x[jnp.array(OMEGA)] - w_a
-    omega = x[jnp.array(OMEGA)]
-    omega_dot = -2.0 * rdot / r * omega + (x[jnp.array(ACC)] + u[:2] - a_m[:2]) / r
-    acc_dot = -x[jnp.array(ACC)] / mp.tau
-    r_ddot = r * jnp.sum(omega**2) + x[AR] + u[2] - a_m[2]
-    return jnp.stack([eps_dot[0], omega_dot[0], acc_dot[0], eps_dot[1], omega_dot[1], acc_dot[1],
-                      rdot, r_ddot, -x[AR] / mp.tau_r])
+    omega_e, omega_d = x[OMEGA[0]], x[OMEGA[1]]
+    damping = -2.0 * rdot / r
+    return jnp.stack([omega_e - w_a[0], damping * omega_e + (x[ACC[0]] + u[0] - a_m[0]) / r, -x[ACC[0]] / mp.tau,
+                      omega_d - w_a[1], damping * omega_d + (x[ACC[1]] + u[1] - a_m[1]) / r, -x[ACC[1]] / mp.tau,
+                      rdot, r * (omega_e**2 + omega_d**2) + x[AR] + u[2] - a_m[2], -x[AR] / mp.tau_r])
 
 
 def process_noise(mp: ModelParams):

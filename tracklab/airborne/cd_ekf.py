@@ -27,7 +27,7 @@ import jax.numpy as jnp
 
 from tracklab.airborne.boresight import EPS, OMEGA, ModelParams, antenna_motion, antenna_rate_at, drift, observation_matrix, process_noise
 from tracklab.airborne.tracker import Timing, Tracker
-from tracklab.filters.core import kalman_update, symmetrise
+from tracklab.filters.core import kalman_update
 from tracklab.linalg import mm, solve
 
 
@@ -49,13 +49,32 @@ class CDState(NamedTuple):
 
 
 def _rk4(f, y, h):
-    """One classical Runge–Kutta step of ẏ = f(s, y) over [0, h], y a pytree."""
-    axpy = lambda a, k, y: jax.tree.map(lambda yi, ki: yi + a * ki, y, k)
+    """One classical Runge–Kutta step of ẏ = f(s, y) over [0, h]."""
     k1 = f(0.0, y)
-    k2 = f(h / 2, axpy(h / 2, k1, y))
-    k3 = f(h / 2, axpy(h / 2, k2, y))
-    k4 = f(h, axpy(h, k3, y))
-    return jax.tree.map(lambda yi, a, b, c, d: yi + h / 6 * (a + 2 * b + 2 * c + d), y, k1, k2, k3, k4)
+    k2 = f(h / 2, y + h / 2 * k1)
+    k3 = f(h / 2, y + h / 2 * k2)
+    k4 = f(h, y + h * k3)
+    return y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+
+def _rk4_packed(Y, w0, cmd, dt, lag, mp: ModelParams, u, du):
+    """``rk4_tick`` on the packed columns Y = [x̂ | P | tangent columns] (9 × K+1); ``du`` (3, K) the
+    columns' tangents of u (zero but for Moose's G columns)."""
+    GQG = process_noise(mp)
+    n, K = Y.shape[0], Y.shape[1] - 1
+    a_m = jnp.zeros((3, 1), Y.dtype)
+    u_columns = jnp.broadcast_to(u[:, None], (3, K))
+
+    def deriv(s, Y):
+        x = Y[:, 0]
+        w = antenna_rate_at(w0, cmd, s, lag)[:, None]
+        f = lambda z, v: drift(z, w, a_m, mp, v)
+        # the drift's tangent map on every column at once: each state component a row of K columns
+        _, FC = jax.jvp(f, (jnp.broadcast_to(x[:, None], (n, K)), u_columns), (Y[:, 1:], du))
+        FP = FC[:, :n]
+        return jnp.concatenate([f(x[:, None], u[:, None]), FP + FP.T + GQG, FC[:, n:]], axis=1)
+
+    return _rk4(deriv, Y, dt)
 
 
 def rk4_tick(x, P, w0, cmd, dt, lag, mp: ModelParams, u=None, M=None, G=None):
@@ -63,31 +82,24 @@ def rk4_tick(x, P, w0, cmd, dt, lag, mp: ModelParams, u=None, M=None, G=None):
     them the transition's tangent columns: M ↦ J_x M and, given G, G ↦ J_x G + J_u for
     J = ∂x(t+dt)/∂(x, u) of the mean's RK4 step. Returns (x, P, M, G).
 
-    F P is the drift's tangent map applied to P's columns (``jax.linearize``: only its nonzero
-    partial derivatives), and P Fᵀ its transpose, P being symmetric. M and G ride in the same
-    stages as Ṁ = F M and Ġ = F G + ∂f/∂u: RK4 applied to these variational equations is
-    exactly the tangent map of RK4's step, so the drift is linearised once per stage for all."""
-    GQG = process_noise(mp)
-    a_m = jnp.zeros(3, x.dtype)
-    u = jnp.zeros(3, x.dtype) if u is None else u
+    F P is the drift's tangent map (``jax.jvp``) applied to P's columns, and P Fᵀ its transpose, P
+    being symmetric (each stage adds F P + (F P)ᵀ, so a symmetric P stays exactly symmetric). M and G ride in the same stages as Ṁ = F M and Ġ = F G + ∂f/∂u: RK4 applied
+    to these variational equations is exactly the tangent map of RK4's step, so the drift is
+    linearised once per stage for all. The step works on one packed array [x̂ | P | M | G], every
+    operation elementwise on its rows (``predict_period`` carries it packed from tick to tick)."""
     n = x.shape[0]
+    u = jnp.zeros(3, x.dtype) if u is None else u
     M = jnp.zeros((n, 0), x.dtype) if M is None else M
-    du = jnp.zeros((3, n + M.shape[1]), x.dtype)
-    if G is not None:  # G's columns move u as well (∂f/∂u)
-        du = jnp.concatenate([du, jnp.eye(3, dtype=x.dtype)], axis=1)
-
-    def deriv(s, y):
-        x, P, C = y
-        w = antenna_rate_at(w0, cmd, s, lag)
-        fx, f_lin = jax.linearize(lambda z, v: drift(z, w, a_m, mp, v), x, u)
-        FC = jax.vmap(f_lin, in_axes=(1, 1), out_axes=1)(jnp.concatenate([P, C], axis=1), du)
-        FP = FC[:, :n]
-        return fx, FP + FP.T + GQG, FC[:, n:]
-
-    columns = M if G is None else jnp.concatenate([M, G], axis=1)
-    x, P, C = _rk4(deriv, (x, P, columns), dt)
     m = M.shape[1]
-    return x, symmetrise(P), C[:, :m], (None if G is None else C[:, m:])
+    Y = jnp.concatenate([x[:, None], P, M] + ([] if G is None else [G]), axis=1)
+    Y = _rk4_packed(Y, w0, cmd, dt, lag, mp, u, _u_tangents(n + m, G is not None, x.dtype))
+    return Y[:, 0], Y[:, 1:n + 1], Y[:, n + 1:n + 1 + m], (None if G is None else Y[:, n + 1 + m:])
+
+
+def _u_tangents(columns, with_g, dtype):
+    """∂u of each packed tangent column: zero for P's and M's, the identity for G's (∂f/∂u)."""
+    du = jnp.zeros((3, columns), dtype)
+    return jnp.concatenate([du, jnp.eye(3, dtype=dtype)], axis=1) if with_g else du
 
 
 def command(x, lam):
@@ -99,18 +111,21 @@ def predict_period(x, P, w_a, cmd, timing: Timing, mp: ModelParams, u=None):
     """Predictions at the n samples of the next period, the covariance at its end, the averaged samples'
     referral to the end (``CDState.refer``) and, with mean levels u (Moose), the end state's
     sensitivity to them (9 × 3; None without)."""
+    n = x.shape[0]
+    du = _u_tangents(2 * n, u is not None, x.dtype)
+    levels = jnp.zeros(3, x.dtype) if u is None else u
 
     def step(carry, _):
-        x, P, w, M, G = carry
-        x, P, M, G = rk4_tick(x, P, w, cmd, timing.dt, timing.lag, mp, u, M, G)  # M: Φ(tᵢ, t_start)
+        Y, w = carry  # Y = [x̂ | P | M | G], M = Φ(tᵢ, t_start)
+        Y = _rk4_packed(Y, w, cmd, timing.dt, timing.lag, mp, levels, du)
         w, _ = antenna_motion(w, cmd, timing.dt, timing.lag)
-        return (x, P, w, M, G), (x, M)
+        return (Y, w), Y
 
-    eye = jnp.eye(x.shape[0], dtype=x.dtype)
-    init = (x, P, w_a, eye, None if u is None else jnp.zeros((9, 3), x.dtype))
-    (_, P_end, _, M_end, G_end), (pred, Ms) = jax.lax.scan(step, init, None, length=timing.n)
-    refer = solve(M_end.T, jnp.mean(Ms, axis=0).T).T  # (1/n Σ Mᵢ) M_end⁻¹
-    return pred, P_end, refer, G_end
+    Y0 = jnp.concatenate([x[:, None], P, jnp.eye(n, dtype=x.dtype)] + ([] if u is None else [jnp.zeros((n, 3), x.dtype)]), axis=1)
+    (Y_end, _), Ys = jax.lax.scan(step, (Y0, w_a), None, length=timing.n)
+    M_end = Y_end[:, n + 1:2 * n + 1]
+    refer = solve(M_end.T, jnp.mean(Ys[:, :, n + 1:2 * n + 1], axis=0).T).T  # (1/n Σ Mᵢ) M_end⁻¹
+    return Ys[:, :, 0], Y_end[:, 1:n + 1], refer, (None if u is None else Y_end[:, 2 * n + 1:])
 
 
 def cd_ekf(timing: Timing) -> Tracker:

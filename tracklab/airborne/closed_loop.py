@@ -16,7 +16,7 @@ is counted, not averaged. Every ``n`` ticks the tracker updates and the true
 the antenna by a fixed angle about its d axis at one instant (a large error
 the trackers must recover from).
 
-``engage`` is one run (pure, ``vmap`` over keys); ``sums`` reduces a batch of runs to per-period sums for
+``engage`` is one run of every tracker (pure, ``vmap`` over keys); ``sums`` reduces a batch of runs to per-period sums for
 streaming statistics, ``run_samples`` to each run's time averages over the
 report windows (the samples behind the intervals). Every random draw is made in
 single precision and then cast, so a float32 run sees the very same target
@@ -69,8 +69,12 @@ def truth(eng: Engagement, t, s):
     return p_t + s[:, 0] - p_m, v_t + s[:, 1] - v_m, a_t + s[:, 2], a_m
 
 
-def engage(eng: Engagement, tracker: Tracker, params, cfg: LoopConfig, sd0, key):
-    """One run: per filter period, the estimate's error (9), its NEES, the true pointing error and range."""
+def engage(eng: Engagement, trackers: list[Tracker], params: list, cfg: LoopConfig, sd0: list, key):
+    """One run of every tracker on the same target path and noise: per filter period, each
+    estimate's error (9), its NEES, the true pointing error and range (a dict per tracker).
+
+    The trackers share one scan: the Singer perturbation, the target's geometry and the random
+    draws are made once a tick for all of them; each tracker has its own antenna, gates and lock."""
     tm = cfg.timing
     dt, n = tm.dt, tm.n
     dtype = jnp.result_type(float)
@@ -80,52 +84,59 @@ def engage(eng: Engagement, tracker: Tracker, params, cfg: LoopConfig, sd0, key)
     sigma = jnp.asarray(cfg.sigma, dtype)
     beam, gate_r, gate_v = cfg.limits
     lo = -jnp.asarray([beam, beam, gate_r, gate_v], dtype)
-    sd0 = jnp.asarray(sd0, dtype)
+    zero = jnp.zeros((), dtype)
 
     normal = lambda k, shape: jax.random.normal(k, shape, jnp.float32).astype(dtype)
     k0, k1, k2, key = jax.random.split(key, 4)
     a0 = normal(k0, (3,)) * (eng.singer_sigma if cfg.singer else 0.0)
     s = jnp.zeros((3, 3), dtype).at[:, 2].set(a0)
     rel_p, rel_v, a_t, a_m = truth(eng, jnp.zeros((), dtype), s)
-    eps0 = normal(k1, (2,)) * sd0[0]
-    C = rotate(los_frame(rel_p), jnp.stack([jnp.zeros((), dtype), eps0[1], eps0[0]]))
-    x_true0, _ = los_state(rel_p, rel_v, a_t, a_m, C)
-    x0 = x_true0 + normal(k2, (9,)) * sd0
-    x0 = x0.at[jnp.array([0, 3])].set(0.0).at[jnp.array([2, 5, 8])].set(0.0)  # ε̂ = 0: the antenna points at the designation
-    P0 = jnp.diag(sd0**2)
-    ts = tracker.start(params, x0, P0)
+    eps0, dx0 = normal(k1, (2,)), normal(k2, (9,))  # the designation's errors in units of each prior's std
+    loops = []
+    for tracker, p, sd in zip(trackers, params, sd0):
+        sd = jnp.asarray(sd, dtype)
+        C = rotate(los_frame(rel_p), jnp.stack([zero, eps0[1] * sd[0], eps0[0] * sd[0]]))
+        x_true0, _ = los_state(rel_p, rel_v, a_t, a_m, C)
+        x0 = x_true0 + dx0 * sd
+        x0 = x0.at[jnp.array([0, 3])].set(0.0).at[jnp.array([2, 5, 8])].set(0.0)  # ε̂ = 0: the antenna points at the designation
+        loops.append((tracker.start(p, x0, jnp.diag(sd**2)), C, jnp.zeros(2, dtype), jnp.zeros((), bool)))
 
     def one_tick(carry, inp):
-        ts, C, w, s, lost = carry
+        loops, s = carry
         i, j, xi = inp
-        cmd, gates = tracker.tick(params, ts, i)
-        w_next, turn = antenna_motion(w, cmd, dt, tm.lag)
-        C = rotate(C, jnp.stack([jnp.zeros((), dtype), turn[1], turn[0]]))
-        if cfg.jolt_tick >= 0:  # static: runs without a jolt trace no rotation for it
-            C = jnp.where(j == cfg.jolt_tick, rotate(C, jnp.asarray([0.0, cfg.jolt, 0.0], dtype)), C)
         s = mm(s, phi.T) + mm(xi[:9].reshape(3, 3), L.T)
         rel_p, rel_v, a_t, a_m = truth(eng, j * dt, s)
-        x, _ = los_state(rel_p, rel_v, a_t, a_m, C)
-        clean = jnp.stack([x[0], x[3], x[6] - gates[0], x[7] - gates[1]])
-        lost = lost | jnp.any(jnp.abs(clean) > -lo)
-        z = k * jnp.clip(clean, lo, -lo) + sigma * xi[9:]
-        ts = tracker.sample(params, ts, i, z)
-        return (ts, C, w_next, s, lost), x
+        out, xs = [], []
+        for tracker, p, (ts, C, w, lost) in zip(trackers, params, loops):
+            cmd, gates = tracker.tick(p, ts, i)
+            w_next, turn = antenna_motion(w, cmd, dt, tm.lag)
+            C = rotate(C, jnp.stack([zero, turn[1], turn[0]]))
+            if cfg.jolt_tick >= 0:  # static: runs without a jolt trace no rotation for it
+                C = jnp.where(j == cfg.jolt_tick, rotate(C, jnp.asarray([0.0, cfg.jolt, 0.0], dtype)), C)
+            x, _ = los_state(rel_p, rel_v, a_t, a_m, C)
+            clean = jnp.stack([x[0], x[3], x[6] - gates[0], x[7] - gates[1]])
+            lost = lost | jnp.any(jnp.abs(clean) > -lo)
+            z = k * jnp.clip(clean, lo, -lo) + sigma * xi[9:]
+            out.append((tracker.sample(p, ts, i, z), C, w_next, lost))
+            xs.append(x)
+        return (out, s), xs
 
     def one_period(carry, p):
         noise = normal(jax.random.fold_in(key, p), (n, 13))
         ticks = jnp.arange(n)
-        carry, xs = jax.lax.scan(one_tick, carry, (ticks, p * n + ticks + 1, noise))
-        ts, C, w, s, lost = carry
-        ts = tracker.update(params, ts, w)
-        x_hat, P = tracker.estimate(ts)
-        e = x_hat - xs[-1]
-        nees = mahalanobis2(P, e)
-        return (ts, C, w, s, lost), (e, nees, jnp.hypot(xs[-1, 0], xs[-1, 3]), xs[-1, 6])
+        (loops, s), xs = jax.lax.scan(one_tick, carry, (ticks, p * n + ticks + 1, noise))
+        out, errors = [], []
+        for tracker, prm, (ts, C, w, lost), x in zip(trackers, params, loops, xs):
+            ts = tracker.update(prm, ts, w)
+            x_hat, P = tracker.estimate(ts)
+            e = x_hat - x[-1]
+            out.append((ts, C, w, lost))
+            errors.append((e, mahalanobis2(P, e), jnp.hypot(x[-1, 0], x[-1, 3]), x[-1, 6]))
+        return (out, s), errors
 
-    carry = (ts, C, jnp.zeros(2, dtype), s, jnp.zeros((), bool))
-    (_, _, _, _, lost), (e, nees, point, r) = jax.lax.scan(one_period, carry, jnp.arange(cfg.periods))
-    return {"err": e, "nees": nees, "point": point, "range": r, "lost": lost}
+    (loops, _), errors = jax.lax.scan(one_period, (loops, s), jnp.arange(cfg.periods))
+    return [{"err": e, "nees": nees, "point": point, "range": r, "lost": lost}
+            for (_, _, _, lost), (e, nees, point, r) in zip(loops, errors)]
 
 
 def _squares(runs_out):

@@ -51,6 +51,9 @@ class Channel(NamedTuple):
     Qc: jax.Array
 
 
+CHANNELS = ((0, 3), (3, 6), (6, 9), (9, 11))  # elevation, azimuth, range, the separate velocity loop
+
+
 def channel_matrices(x, mp, separate):
     """The channels with the coefficients frozen at x, in the state's order: elevation, azimuth (the
     same channel object), range and, ``separate``, the velocity loop."""
@@ -87,15 +90,14 @@ def _van_loan(c: Channel, T):
 
 
 def van_loan(channels, T):
-    """Φ, the constant input's response γ = ∫Φ b, Q_d and Φ⁻¹ over T of the whole state, block
-    diagonal: each channel discretised alone by Van Loan's method (a channel whose model is another's,
-    the azimuth's, is not computed twice). The channels follow one another in the state."""
+    """Each channel's (Φ, γ = ∫Φ b, Q_d, Φ⁻¹) over T by Van Loan's method, in the state's order (a
+    channel whose model is another's, the azimuth's, is not computed twice). The whole state's are
+    these blocks on the diagonal."""
     done = {}
     for c in channels:
         if id(c) not in done:
             done[id(c)] = _van_loan(c, T)
-    phi, gam, Qd, phi_inv = zip(*(done[id(c)] for c in channels))
-    return block_diag(*phi), jnp.concatenate(gam), block_diag(*Qd), block_diag(*phi_inv)
+    return [done[id(c)] for c in channels]
 
 
 def decoupled(timing: Timing, separate=False) -> Tracker:
@@ -106,21 +108,26 @@ def decoupled(timing: Timing, separate=False) -> Tracker:
 
     def plan(params, x, P, w_a):
         cmd = command(x, params.lam)
-        phi, gam, Qd, phi_inv = van_loan(channel_matrices(x, params.model, separate), timing.dt)
+        blocks = van_loan(channel_matrices(x, params.model, separate), timing.dt)
+        turned = [0, 1] + [None] * (len(blocks) - 2)  # the ε rows (EPS) the antenna's turn enters
 
-        def step(carry, _):
-            x, P, w = carry
+        def step(carry, _):  # channel by channel: P is block diagonal, and so is every product here
+            xs, Ps, w = carry
             w_next, turn = antenna_motion(w, cmd, timing.dt, timing.lag)
-            x = mm(phi, x) + gam
-            x = x.at[jnp.array(EPS)].add(-turn)
-            return (x, symmetrise(mm(mm(phi, P), phi.T) + Qd), w_next), x
+            xs = [mm(phi, xc) + gam for (phi, gam, _, _), xc in zip(blocks, xs)]
+            xs = [xc if t is None else xc.at[0].add(-turn[t]) for xc, t in zip(xs, turned)]
+            Ps = [symmetrise(mm(mm(phi, Pc), phi.T) + Qd) for (phi, _, Qd, _), Pc in zip(blocks, Ps)]
+            return (xs, Ps, w_next), jnp.concatenate(xs)
 
-        (_, P_end, _), pred = jax.lax.scan(step, (x, P, w_a), None, length=n)
-        back = [jnp.eye(m, dtype=x.dtype)]  # Φ^{i−n}, i = n … 1
-        for _ in range(n - 1):
-            back.append(mm(back[-1], phi_inv))
-        refer = sum(back) / n
-        return DecoupledState(x, P, pred, P_end, refer, cmd, jnp.zeros(4, x.dtype))
+        init = ([x[a:b] for a, b in CHANNELS[:len(blocks)]], [P[a:b, a:b] for a, b in CHANNELS[:len(blocks)]], w_a)
+        (_, P_end, _), pred = jax.lax.scan(step, init, None, length=n)
+        refer = []
+        for _, _, _, phi_inv in blocks:
+            back = [jnp.eye(phi_inv.shape[0], dtype=x.dtype)]  # Φ^{i−n}, i = n … 1
+            for _ in range(n - 1):
+                back.append(mm(back[-1], phi_inv))
+            refer.append(sum(back) / n)
+        return DecoupledState(x, P, pred, block_diag(*P_end), block_diag(*refer), cmd, jnp.zeros(4, x.dtype))
 
     def start(params, x0, P0):
         x = x0 if not separate else jnp.concatenate([x0, x0[7:9]])
@@ -147,10 +154,6 @@ def decoupled(timing: Timing, separate=False) -> Tracker:
         return s.x[view], s.P[view][:, view]
 
     def _block_diagonal(P):
-        blocks = [(0, 3), (3, 6), (6, 9)] + ([(9, 11)] if separate else [])
-        out = jnp.zeros_like(P)
-        for a, b in blocks:
-            out = out.at[a:b, a:b].set(P[a:b, a:b])
-        return out
+        return block_diag(*(P[a:b, a:b] for a, b in CHANNELS[:4 if separate else 3]))
 
     return Tracker(start, tick, sample, update, estimate)

@@ -23,6 +23,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from tracklab.linalg import host_expm
+
 G0 = 9.80665  # m/s², one g
 
 
@@ -93,14 +95,11 @@ def singer_block(T, tau, sigma):
     The closed forms of REFERENCE_MATH §1 agree (tested) but lose every digit to
     cancellation at the radar's sample period (T/τ = 10⁻³: Q₁₁ ~ T⁵).
     """
-    from jax.scipy.linalg import expm
-
     A = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, -1.0 / tau]])
     Qc = np.zeros((3, 3))
     Qc[2, 2] = 2.0 * sigma**2 / tau
     M = np.block([[-A, Qc], [np.zeros((3, 3)), A.T]]) * T
-    with jax.enable_x64(True), jax.ensure_compile_time_eval():  # constants, also when called under jit
-        E = np.asarray(expm(jnp.asarray(M, jnp.float64)))
+    E = host_expm(M)  # float64 on the host: constants, also when called under jit
     phi = E[3:, 3:].T
     Q = phi @ E[:3, 3:]
     return phi, 0.5 * (Q + Q.T)

@@ -91,10 +91,9 @@ def _chunk(structure: AirborneStructure):
         cfg = LoopConfig(structure.timing, structure.periods, params.k, params.sigma, tuple(params.limits),
                          params.acquisition, structure.jolt_tick, params.jolt, structure.singer, params.singer_phi,
                          params.singer_L)
+        runs = jax.vmap(lambda key: engage(params.engagement, trackers, params.trackers, cfg, params.sd0, key))(keys)
         out, samples = {}, []
-        for i, (spec, tracker) in enumerate(zip(structure.trackers, trackers)):
-            p, sd0 = params.trackers[i], params.sd0[i]
-            res = jax.vmap(lambda key: engage(params.engagement, tracker, p, cfg, sd0, key))(keys)
+        for i, (spec, res) in enumerate(zip(structure.trackers, runs)):
             out[spec.label] = sums(res, live & ~exclude[i])
             samples.append(run_samples(res, live & ~exclude[i], params.windows))
         values, ok, kept = (jnp.stack(a) for a in zip(*samples))

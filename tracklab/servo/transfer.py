@@ -13,8 +13,8 @@ Discretisation, to a state space x' = A x + B u, y = C x + D u at period T:
   maps the jω axis onto the unit circle with frequency warping
   ω_d = (2/T) tan(ωT/2), 0.02 % at 50 rad/s and T = 1 ms.
 
-Both are computed from a controllable canonical realisation with NumPy and
-``jax.scipy.linalg.expm`` (ZOH).
+Both are computed from a controllable canonical realisation with NumPy (ZOH: the matrix
+exponential ``linalg.host_expm``).
 """
 
 from __future__ import annotations
@@ -24,6 +24,8 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
+
+from tracklab.linalg import host_expm
 
 
 @dataclass(frozen=True)
@@ -129,10 +131,8 @@ def discretise_state_space(A, B, C, D, dt: float, method: str = "bilinear") -> D
         Dd = D + 0.5 * C @ Bd
         return DiscreteSystem(Ad, Bd, Cd, Dd, dt)
     if method == "zoh":
-        from jax.scipy.linalg import expm
-
         M = np.zeros((n + 1, n + 1))
         M[:n, :n], M[:n, n:] = A, B
-        E = np.asarray(expm(jnp.asarray(M * dt)))
+        E = host_expm(M * dt)
         return DiscreteSystem(E[:n, :n], E[:n, n:], C, D, dt)
     raise ValueError(f"unknown discretisation {method!r}: bilinear or zoh")
