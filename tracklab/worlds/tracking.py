@@ -500,21 +500,24 @@ def _prior_means(truth0, k_prior, L0):
     return truth0 + w @ L0.T
 
 
-def _tainted(fn, args, flags):
-    """Which outputs of ``fn(*args)`` depend on the inputs flagged in ``flags`` (one per leaf),
-    and the outputs' shapes (a pytree of ``ShapeDtypeStruct``).
-
-    A conservative reading of the jaxpr: an equation with any dependent input makes
-    all its outputs dependent (nested jaxprs included).
-    """
+def _traced(fn, args):
+    """``fn``'s jaxpr at the shapes of ``args`` and its outputs' shapes (``ShapeDtypeStruct``)."""
     args = jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a)), args)
     closed, shapes = jax.make_jaxpr(fn, return_shape=True)(*args)
-    jaxpr = closed.jaxpr
+    return closed.jaxpr, shapes
+
+
+def _tainted(jaxpr, flags):
+    """Which outputs of ``jaxpr`` depend on the inputs flagged in ``flags`` (one per input).
+
+    A conservative reading: an equation with any dependent input makes all its outputs
+    dependent (nested jaxprs included).
+    """
     dep = {v for v, f in zip(jaxpr.invars, flags) if f}
     for eqn in jaxpr.eqns:
         if any(not isinstance(v, jax.extend.core.Literal) and v in dep for v in eqn.invars):
             dep.update(eqn.outvars)
-    return [not isinstance(v, jax.extend.core.Literal) and v in dep for v in jaxpr.outvars], shapes
+    return [not isinstance(v, jax.extend.core.Literal) and v in dep for v in jaxpr.outvars]
 
 
 def _run_dependence(init, body, prior, z_k, truth_k, fixed, may_share):
@@ -522,22 +525,23 @@ def _run_dependence(init, body, prior, z_k, truth_k, fixed, may_share):
     every run, i.e. depends neither on a run's prior mean nor on its measurements: a linear KF's
     covariance when the report pattern is the same in every run, looked for only when
     ``may_share``; per leaf of its error inputs, whether it may differ between runs; the error
-    inputs' shapes)."""
+    inputs' shapes). The step is traced once; its dependence is iterated on that jaxpr."""
     leaves = jax.tree_util.tree_leaves
     fixed_k = jax.tree_util.tree_map(lambda a: a[0], fixed)
-    state = jax.eval_shape(init, prior)
+    init_jaxpr, state = _traced(init, (prior,))
     n_state = len(leaves(state))
 
     def step(state, z_k, truth_k, fixed_k):
         return body(state, (z_k, truth_k) + tuple(fixed_k))
 
+    step_jaxpr, (_, inputs) = _traced(step, (state, z_k, truth_k, fixed_k))
     state_flags = [True] * n_state
     if may_share:
-        state_flags = _tainted(init, (prior,), [True] * len(leaves(prior)))[0]
+        state_flags = _tainted(init_jaxpr, [True] * len(leaves(prior)))
     for _ in range(n_state + 1):  # to the fixed point: a dependent leaf stays dependent
         # the inputs that differ between runs: the state's dependent leaves, the measurements and the truth
         flags = state_flags + [True] * len(leaves((z_k, truth_k))) + [False] * len(leaves(fixed_k))
-        out, (_, inputs) = _tainted(step, (state, z_k, truth_k, fixed_k), flags)
+        out = _tainted(step_jaxpr, flags)
         new = [a or b for a, b in zip(out[:n_state], state_flags)]
         if new == state_flags:
             break
