@@ -377,10 +377,17 @@ def test_interrupted_run_leaves_previous_results_intact(tmp_path):
     (out / "stats.json").write_text(previous)
     # a terminal's Ctrl-C reaches a process whose SIGINT is at its default; a test worker (or any
     # background job) may hand its children an ignored SIGINT, so restore the default in the child
+    # a cache folder of its own: the run stores its compiled program there, the sign that it is in its chunks
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    env["TRACKLAB_CACHE_DIR"] = str(tmp_path / "cache")
     proc = subprocess.Popen([*_command(), "run", "small.toml", "--runs", "100000000", "--out", "out", "--no-figures"],
-                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    time.sleep(8)  # importing, validating, compiling, first chunks
+    waited = 0.0
+    while not list((tmp_path / "cache").glob("programs/*.program")) and waited < 60 and proc.poll() is None:
+        time.sleep(0.1)
+        waited += 0.1
+    time.sleep(0.5)  # its first chunks
     proc.send_signal(signal.SIGINT)
     try:
         _, err = proc.communicate(timeout=120)
