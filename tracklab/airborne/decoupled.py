@@ -24,6 +24,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.scipy.linalg import block_diag
 
 from tracklab.airborne.boresight import EPS, OMEGA, antenna_motion
@@ -52,6 +53,9 @@ class Channel(NamedTuple):
 
 
 CHANNELS = ((0, 3), (3, 6), (6, 9), (9, 11))  # elevation, azimuth, range, the separate velocity loop
+# each channel's error signals (rows of z: ε_em, ε_dm, range, velocity) and the states they read
+SIGNALS = {False: (((0,), (0,)), ((1,), (0,)), ((2, 3), (0, 1))),
+           True: (((0,), (0,)), ((1,), (0,)), ((2,), (0,)), ((3,), (0,)))}
 
 
 def channel_matrices(x, mp, separate):
@@ -104,7 +108,6 @@ def decoupled(timing: Timing, separate=False) -> Tracker:
     n, m = timing.n, (11 if separate else 9)
     rdot_i = 9 if separate else 7
     view = jnp.array([0, 1, 2, 3, 4, 5, 6, 9, 10] if separate else list(range(9)))
-    H_rows = jnp.array([0, 3, 6, rdot_i])
 
     def plan(params, x, P, w_a):
         cmd = command(x, params.lam)
@@ -143,12 +146,19 @@ def decoupled(timing: Timing, separate=False) -> Tracker:
     def sample(params, s, i, z):
         return s._replace(zsum=s.zsum + z)
 
-    def update(params, s, w_a):
+    def update(params, s, w_a):  # channel by channel, each on the error signals it reads
         k = params.k
-        H = jnp.zeros((4, m), s.x.dtype).at[jnp.arange(4), H_rows].set(k)
         z_hat = jnp.concatenate([k[:2] * jnp.mean(s.pred[:, jnp.array(EPS)], axis=0), jnp.zeros(2, s.x.dtype)])
-        x, P, _ = kalman_update(s.pred[-1], s.P_end, s.zsum / n - z_hat, mm(H, s.refer), jnp.diag(params.r) / n)
-        return plan(params, x, P, w_a)
+        nu = s.zsum / n - z_hat
+        xs, Ps = [], []
+        for (a, b), (rows, states) in zip(CHANNELS, SIGNALS[separate]):
+            rows = np.asarray(rows)
+            H = jnp.zeros((len(rows), b - a), s.x.dtype).at[np.arange(len(rows)), np.asarray(states)].set(k[rows])
+            x, P, _ = kalman_update(s.pred[-1, a:b], s.P_end[a:b, a:b], nu[rows], mm(H, s.refer[a:b, a:b]),
+                                    jnp.diag(params.r[rows]) / n)
+            xs.append(x)
+            Ps.append(P)
+        return plan(params, jnp.concatenate(xs), block_diag(*Ps), w_a)
 
     def estimate(s):
         return s.x[view], s.P[view][:, view]
