@@ -83,17 +83,22 @@ def rk4_tick(x, P, w0, cmd, dt, lag, mp: ModelParams, u=None, M=None, G=None):
     J = ∂x(t+dt)/∂(x, u) of the mean's RK4 step. Returns (x, P, M, G).
 
     F P is the drift's tangent map (``jax.jvp``) applied to P's columns, and P Fᵀ its transpose, P
-    being symmetric (each stage adds F P + (F P)ᵀ, so a symmetric P stays exactly symmetric). M and G ride in the same stages as Ṁ = F M and Ġ = F G + ∂f/∂u: RK4 applied
-    to these variational equations is exactly the tangent map of RK4's step, so the drift is
-    linearised once per stage for all. The step works on one packed array [x̂ | P | M | G], every
+    being symmetric (each stage adds F P + (F P)ᵀ, so a symmetric P stays exactly symmetric). M
+    and G ride in the same stages as Ṁ = F M and Ġ = F G + ∂f/∂u: RK4 applied to these
+    variational equations is exactly the tangent map of RK4's step, so the drift is linearised
+    once per stage for all. The step works on one packed array [x̂ | P | M | G], every
     operation elementwise on its rows (``predict_period`` carries it packed from tick to tick)."""
     n = x.shape[0]
     u = jnp.zeros(3, x.dtype) if u is None else u
     M = jnp.zeros((n, 0), x.dtype) if M is None else M
     m = M.shape[1]
-    Y = jnp.concatenate([x[:, None], P, M] + ([] if G is None else [G]), axis=1)
-    Y = _rk4_packed(Y, w0, cmd, dt, lag, mp, u, _u_tangents(n + m, G is not None, x.dtype))
+    Y = _rk4_packed(_pack(x, P, M, G), w0, cmd, dt, lag, mp, u, _u_tangents(n + m, G is not None, x.dtype))
     return Y[:, 0], Y[:, 1:n + 1], Y[:, n + 1:n + 1 + m], (None if G is None else Y[:, n + 1 + m:])
+
+
+def _pack(x, P, M, G=None):
+    """The packed columns [x̂ | P | M | G] (G: None, none)."""
+    return jnp.concatenate([x[:, None], P, M] + ([] if G is None else [G]), axis=1)
 
 
 def _u_tangents(columns, with_g, dtype):
@@ -121,7 +126,7 @@ def predict_period(x, P, w_a, cmd, timing: Timing, mp: ModelParams, u=None):
         w, _ = antenna_motion(w, cmd, timing.dt, timing.lag)
         return (Y, w), Y
 
-    Y0 = jnp.concatenate([x[:, None], P, jnp.eye(n, dtype=x.dtype)] + ([] if u is None else [jnp.zeros((n, 3), x.dtype)]), axis=1)
+    Y0 = _pack(x, P, jnp.eye(n, dtype=x.dtype), None if u is None else jnp.zeros((n, 3), x.dtype))
     (Y_end, _), Ys = jax.lax.scan(step, (Y0, w_a), None, length=timing.n)
     M_end = Y_end[:, n + 1:2 * n + 1]
     refer = solve(M_end.T, jnp.mean(Ys[:, :, n + 1:2 * n + 1], axis=0).T).T  # (1/n Σ Mᵢ) M_end⁻¹

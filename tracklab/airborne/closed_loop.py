@@ -92,10 +92,11 @@ def engage(eng: Engagement, trackers: list[Tracker], params: list, cfg: LoopConf
     s = jnp.zeros((3, 3), dtype).at[:, 2].set(a0)
     rel_p, rel_v, a_t, a_m = truth(eng, jnp.zeros((), dtype), s)
     eps0, dx0 = normal(k1, (2,)), normal(k2, (9,))  # the designation's errors in units of each prior's std
+    on_los = los_frame(rel_p)
     loops = []
     for tracker, p, sd in zip(trackers, params, sd0):
         sd = jnp.asarray(sd, dtype)
-        C = rotate(los_frame(rel_p), jnp.stack([zero, eps0[1] * sd[0], eps0[0] * sd[0]]))
+        C = rotate(on_los, jnp.stack([zero, eps0[1] * sd[0], eps0[0] * sd[0]]))
         x_true0, _ = los_state(rel_p, rel_v, a_t, a_m, C)
         x0 = x_true0 + dx0 * sd
         x0 = x0.at[jnp.array([0, 3])].set(0.0).at[jnp.array([2, 5, 8])].set(0.0)  # ε̂ = 0: the antenna points at the designation

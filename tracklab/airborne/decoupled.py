@@ -38,8 +38,8 @@ class DecoupledState(NamedTuple):
     x: jax.Array  # (m,) 9, or 11 with the separate velocity loop [ṙ, a_r] at 9, 10
     P: jax.Array  # block diagonal
     pred: jax.Array  # (n, m)
-    P_end: jax.Array
-    refer: jax.Array  # (1/n) Σᵢ Φ^{i−n}: the averaged samples' errors from the error at the period's end (cd_ekf)
+    P_end: list  # each channel's covariance at the period's end
+    refer: list  # each channel's (1/n) Σᵢ Φ^{i−n}: the averaged samples' errors from the error at the period's end (cd_ekf)
     cmd: jax.Array
     zsum: jax.Array
 
@@ -108,11 +108,13 @@ def decoupled(timing: Timing, separate=False) -> Tracker:
     n, m = timing.n, (11 if separate else 9)
     rdot_i = 9 if separate else 7
     view = jnp.array([0, 1, 2, 3, 4, 5, 6, 9, 10] if separate else list(range(9)))
+    signals = SIGNALS[separate]
+    bounds = CHANNELS[:len(signals)]
+    turned = (0, 1) + (None,) * (len(bounds) - 2)  # the ε rows (EPS) the antenna's turn enters, per channel
 
     def plan(params, x, P, w_a):
         cmd = command(x, params.lam)
         blocks = van_loan(channel_matrices(x, params.model, separate), timing.dt)
-        turned = [0, 1] + [None] * (len(blocks) - 2)  # the ε rows (EPS) the antenna's turn enters
 
         def step(carry, _):  # channel by channel: P is block diagonal, and so is every product here
             xs, Ps, w = carry
@@ -122,7 +124,7 @@ def decoupled(timing: Timing, separate=False) -> Tracker:
             Ps = [symmetrise(mm(mm(phi, Pc), phi.T) + Qd) for (phi, _, Qd, _), Pc in zip(blocks, Ps)]
             return (xs, Ps, w_next), jnp.concatenate(xs)
 
-        init = ([x[a:b] for a, b in CHANNELS[:len(blocks)]], [P[a:b, a:b] for a, b in CHANNELS[:len(blocks)]], w_a)
+        init = ([x[a:b] for a, b in bounds], [P[a:b, a:b] for a, b in bounds], w_a)
         (_, P_end, _), pred = jax.lax.scan(step, init, None, length=n)
         refer = []
         for _, _, _, phi_inv in blocks:
@@ -130,7 +132,7 @@ def decoupled(timing: Timing, separate=False) -> Tracker:
             for _ in range(n - 1):
                 back.append(mm(back[-1], phi_inv))
             refer.append(sum(back) / n)
-        return DecoupledState(x, P, pred, block_diag(*P_end), block_diag(*refer), cmd, jnp.zeros(4, x.dtype))
+        return DecoupledState(x, P, pred, P_end, refer, cmd, jnp.zeros(4, x.dtype))
 
     def start(params, x0, P0):
         x = x0 if not separate else jnp.concatenate([x0, x0[7:9]])
@@ -151,11 +153,10 @@ def decoupled(timing: Timing, separate=False) -> Tracker:
         z_hat = jnp.concatenate([k[:2] * jnp.mean(s.pred[:, jnp.array(EPS)], axis=0), jnp.zeros(2, s.x.dtype)])
         nu = s.zsum / n - z_hat
         xs, Ps = [], []
-        for (a, b), (rows, states) in zip(CHANNELS, SIGNALS[separate]):
+        for (a, b), (rows, states), P_end, refer in zip(bounds, signals, s.P_end, s.refer):
             rows = np.asarray(rows)
             H = jnp.zeros((len(rows), b - a), s.x.dtype).at[np.arange(len(rows)), np.asarray(states)].set(k[rows])
-            x, P, _ = kalman_update(s.pred[-1, a:b], s.P_end[a:b, a:b], nu[rows], mm(H, s.refer[a:b, a:b]),
-                                    jnp.diag(params.r[rows]) / n)
+            x, P, _ = kalman_update(s.pred[-1, a:b], P_end, nu[rows], mm(H, refer), jnp.diag(params.r[rows]) / n)
             xs.append(x)
             Ps.append(P)
         return plan(params, jnp.concatenate(xs), block_diag(*Ps), w_a)
@@ -164,6 +165,6 @@ def decoupled(timing: Timing, separate=False) -> Tracker:
         return s.x[view], s.P[view][:, view]
 
     def _block_diagonal(P):
-        return block_diag(*(P[a:b, a:b] for a, b in CHANNELS[:4 if separate else 3]))
+        return block_diag(*(P[a:b, a:b] for a, b in bounds))
 
     return Tracker(start, tick, sample, update, estimate)
