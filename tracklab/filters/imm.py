@@ -117,26 +117,29 @@ def model_imm(dim: int, dt: float, sensor, params, kinds=("cv", "ca", "ct")) -> 
         x0 = jnp.einsum("ij,in->jn", w, s.x)
         d = s.x[:, None, :] - x0[None, :, :]  # (i, j, n)
         P0 = jnp.einsum("ij,inm->jnm", w, s.P) + jnp.einsum("ij,ijn,ijm->jnm", w, d, d)
-        xs, Ps, preds, nus, Ss, lls = [], [], [], [], [], []
+        # each model's prediction (its own transition), then one update for all of them (the same sensor)
+        Fs, preds, Qs = [], [], []
         for j, f in enumerate(fs):  # static loop over the models (r ≤ 3)
-            F = jacobian(f, x0[j])
-            Q = (Gs[j] * p["q"][j]) @ Gs[j].T + p["q_turn"] * e_w
-            xp = f(x0[j])
-            Pp = symmetrise(mm(mm(F, P0[j]), F.T) + Q)
+            Fs.append(jacobian(f, x0[j]))
+            preds.append(f(x0[j]))
+            Qs.append((Gs[j] * p["q"][j]) @ Gs[j].T + p["q_turn"] * e_w)
+        Fs, xps, Qs = jnp.stack(Fs), jnp.stack(preds), jnp.stack(Qs)
+        Pps = jax.vmap(lambda F, P, Q: symmetrise(mm(mm(F, P), F.T) + Q))(Fs, P0, Qs)
+
+        def update(xp, Pp):
             H = jacobian(h, xp)
             nu = wrap_components(z - h(xp), sensor.angle_mask)
             x, P, nu, S = masked_kalman_update(xp, Pp, nu, H, jnp.diag(p["r"]), present)
             d2, logdet = mahalanobis2_logdet(S, nu)
-            xs.append(x), Ps.append(P), preds.append(xp), nus.append(nu), Ss.append(S)
-            lls.append(-0.5 * (d2 + logdet))
-        xs, Ps, nus, Ss = jnp.stack(xs), jnp.stack(Ps), jnp.stack(nus), jnp.stack(Ss)
-        ll = jnp.stack(lls)
+            return x, P, nu, S, -0.5 * (d2 + logdet)
+
+        xs, Ps, nus, Ss, ll = jax.vmap(update)(xps, Pps)
         mu = c * jnp.exp(ll - jnp.max(ll))
         mu = jnp.where(jnp.any(present), mu / jnp.sum(mu), c)
         x = mu @ xs
         dx = xs - x
         P = jnp.einsum("j,jnm->nm", mu, Ps) + jnp.einsum("j,jn,jm->nm", mu, dx, dx)
-        x_pred = c @ jnp.stack(preds)
+        x_pred = c @ xps
         nu = c @ nus
         dnu = nus - nu
         S = jnp.einsum("j,jab->ab", c, Ss) + jnp.einsum("j,ja,jb->ab", c, dnu, dnu)
