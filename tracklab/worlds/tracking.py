@@ -501,10 +501,27 @@ def _prior_means(truth0, k_prior, L0):
 
 
 def _traced(fn, args):
-    """``fn``'s jaxpr at the shapes of ``args`` and its outputs' shapes (``ShapeDtypeStruct``)."""
+    """``fn``'s closed jaxpr at the shapes of ``args`` and its outputs' shapes (``ShapeDtypeStruct``)."""
     args = jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a)), args)
-    closed, shapes = jax.make_jaxpr(fn, return_shape=True)(*args)
-    return closed.jaxpr, shapes
+    return jax.make_jaxpr(fn, return_shape=True)(*args)
+
+
+def _replayed(closed, args, shapes):
+    """A function of arguments shaped as ``args`` that evaluates the jaxpr ``closed`` traced from them
+    (outputs shaped as ``shapes``): the traced function again without running its Python."""
+    in_tree = jax.tree_util.tree_structure(args)
+    avals = [(jnp.shape(a), jnp.result_type(a)) for a in jax.tree_util.tree_leaves(args)]
+    out_tree = jax.tree_util.tree_structure(shapes)
+    run = jax.extend.core.jaxpr_as_fun(closed)
+
+    def replay(*given):
+        flat, tree = jax.tree_util.tree_flatten(given)
+        got = [(jnp.shape(a), jnp.result_type(a)) for a in flat]
+        if tree != in_tree or got != avals:
+            raise TypeError(f"replayed with {tree} {got}, traced with {in_tree} {avals}")
+        return jax.tree_util.tree_unflatten(out_tree, run(*flat))
+
+    return replay
 
 
 def _tainted(jaxpr, flags):
@@ -525,16 +542,18 @@ def _run_dependence(init, body, prior, z_k, truth_k, fixed, may_share):
     every run, i.e. depends neither on a run's prior mean nor on its measurements: a linear KF's
     covariance when the report pattern is the same in every run, looked for only when
     ``may_share``; per leaf of its error inputs, whether it may differ between runs; the error
-    inputs' shapes). The step is traced once; its dependence is iterated on that jaxpr."""
+    inputs' shapes; the step as its jaxpr replayed, for the chunk's ``vmap``). The step is traced
+    once: its dependence is iterated on that jaxpr, and the chunk batches the jaxpr rather than
+    tracing the filter's Python again."""
     leaves = jax.tree_util.tree_leaves
     fixed_k = jax.tree_util.tree_map(lambda a: a[0], fixed)
     init_jaxpr, state = _traced(init, (prior,))
+    init_jaxpr = init_jaxpr.jaxpr
     n_state = len(leaves(state))
-
-    def step(state, z_k, truth_k, fixed_k):
-        return body(state, (z_k, truth_k) + tuple(fixed_k))
-
-    step_jaxpr, (_, inputs) = _traced(step, (state, z_k, truth_k, fixed_k))
+    example = (state, (z_k, truth_k) + tuple(fixed_k))
+    step, shapes = _traced(body, example)
+    inputs = shapes[1]
+    step_jaxpr = step.jaxpr
     state_flags = [True] * n_state
     if may_share:
         state_flags = _tainted(init_jaxpr, [True] * len(leaves(prior)))
@@ -547,7 +566,7 @@ def _run_dependence(init, body, prior, z_k, truth_k, fixed, may_share):
             break
         state_flags = new
     shared = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(state), [not f for f in state_flags])
-    return shared, out[n_state:], inputs
+    return shared, out[n_state:], inputs, _replayed(step, example, shapes)
 
 
 def _with_errors(body, dtype):
@@ -622,13 +641,14 @@ def _chunk(structure: TrackingStructure):
             z_views = [z_all if ln.view is None else jax.vmap(ln.view, in_axes=1, out_axes=1)(z_all)
                        for ln in lanes]
         truth_batched = scenario.per_run or not stream
-        state_axes, states0, err_axes, kinds = [], [], [], []
+        state_axes, states0, err_axes, kinds, bodies = [], [], [], [], []
         for ln in lanes:
             fixed = (t, ln.present, jnp.asarray(ln.reports))
             m_f = ln.pattern.shape[1]
             z_ex, truth_ex = jnp.zeros((m_f,), dtype), jnp.zeros((2 * d,), dtype)
-            shared, varies, inputs = _run_dependence(ln.init, ln.body, prior[0], z_ex, truth_ex, fixed,
-                                                     may_share=ln.present is not None)
+            shared, varies, inputs, body = _run_dependence(ln.init, ln.body, prior[0], z_ex, truth_ex, fixed,
+                                                           may_share=ln.present is not None)
+            bodies.append(body)
             state_axes.append(jax.tree_util.tree_map(lambda s: None if s else 0, shared))
             states0.append(jax.vmap(ln.init, out_axes=state_axes[-1])(prior))
             # the error inputs that differ between runs carry the runs last; the others (a shared
@@ -648,7 +668,7 @@ def _chunk(structure: TrackingStructure):
         for g in groups:
             for i in g:
                 alone = len(g) == 1
-                body, out_axes = (_with_errors(lanes[i].body, dtype), -1) if alone else (lanes[i].body, err_axes[i])
+                body, out_axes = (_with_errors(bodies[i], dtype), -1) if alone else (bodies[i], err_axes[i])
                 steps[i] = jax.vmap(body, in_axes=(state_axes[i], (0, 0 if truth_batched else None, None, None, None)),
                                     out_axes=(state_axes[i], out_axes))
         carries = []
