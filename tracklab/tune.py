@@ -276,6 +276,7 @@ class Objective:
     values: Callable  # theta -> {label: {name: value}}, the tuned parameters' constrained values
     chosen: dict  # label -> names
     why_not: Callable  # {label: {name: value}} -> why a file could not hold them (None if it can)
+    compiler_options: dict | None = None  # XLA options of the world's programs (``runner.World``)
 
     @property
     def initial(self) -> dict:
@@ -292,7 +293,8 @@ def objective(exp, names, loss="mse_pos", labels=None) -> Objective:
     if hasattr(exp, "tune_selection"):
         return _closed_loop_objective(exp, chosen, loss)
     structure = exp.structure()
-    fn = runner.sharded(tracking.world(structure))
+    world = tracking.world(structure)
+    fn = runner.sharded(world)
     params = exp.params()
     base = params.filters
     labels_all = structure.labels
@@ -339,13 +341,15 @@ def objective(exp, names, loss="mse_pos", labels=None) -> Objective:
                 return why
         return None
 
-    return Objective(per_filter, theta0, values, {l: tuple(ns) for l, ns in chosen.items()}, why_not)
+    return Objective(per_filter, theta0, values, {l: tuple(ns) for l, ns in chosen.items()}, why_not,
+                     runner.world_compiler_options(world))
 
 
 def _closed_loop_objective(exp, chosen, loss) -> Objective:
     """The airborne or servo world's: every tuned number is positive (tuned in its logarithm)."""
     structure = exp.structure()
-    fn = runner.sharded(exp.world(structure))
+    world = exp.world(structure)
+    fn = runner.sharded(world)
     params = exp.params()
     lanes = getattr(exp, "tune_lanes", lambda c: list(c))(chosen)
     loss_fn = exp.tune_losses[loss]
@@ -363,7 +367,7 @@ def _closed_loop_objective(exp, chosen, loss) -> Objective:
         return next((f"{l}: {n} leaves {positive.bounds}" for l, v in vals.items() for n, x in v.items()
                      if not positive.contains({n: x})), None)
 
-    return Objective(per_lane, theta0, values, chosen, why_not)
+    return Objective(per_lane, theta0, values, chosen, why_not, runner.world_compiler_options(world))
 
 
 @dataclass
@@ -411,8 +415,8 @@ def _tune(exp, names, *, steps, lr, loss, runs_per_step, eval_runs, seed, labels
         losses = obj.losses(theta, key, idx, live)
         return sum(losses.values()), losses
 
-    value_and_grad = jax.jit(gradient(total, numbers(obj.theta0)))
-    held_out = jax.jit(obj.losses)
+    value_and_grad = jax.jit(gradient(total, numbers(obj.theta0)), compiler_options=obj.compiler_options)
+    held_out = jax.jit(obj.losses, compiler_options=obj.compiler_options)
     opt = optax.adam(lr)
     # the parameters go in as host arrays at every step (jax.device_get): an update made of the
     # program's outputs lives where they do (committed to the devices), and a compiled program is

@@ -70,6 +70,11 @@ class World(NamedTuple):
     compiler_options: tuple = ()
 
 
+def world_compiler_options(world: World) -> dict | None:
+    """The XLA options ``world``'s programs compile with (None: XLA's, as XLA_FLAGS set them)."""
+    return not_in_xla_flags(dict(world.compiler_options)) or None
+
+
 @dataclass
 class Outcome:
     """What the runner hands back to the world that asked."""
@@ -243,7 +248,7 @@ def program(world: World, params, precision: str = "float64", points: int | None
         args = (params, jax.random.key(0), np.zeros((B,), np.uint32), np.zeros((B,), bool),
                 np.zeros(lead + (world.lanes, B), bool))
         lowered = jax.jit(fn).lower(*args)
-        compiled, here = programs.compile_here(lowered, not_in_xla_flags(dict(world.compiler_options)) or None)
+        compiled, here = programs.compile_here(lowered, world_compiler_options(world))
         if stored and here:  # XLA compiled it in this process (not loaded by JAX from its own cache)
             programs.store(stored, compiled)
     compile_s = time.perf_counter() - t0
