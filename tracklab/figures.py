@@ -619,6 +619,44 @@ def plot_airborne(doc, folder: Path):
         plt.close(fig)
 
 
+def _rate_error_panels(plt, doc, folder, filters):
+    """``rate_error.png``: run 0's rate-estimate error, one panel per estimator (cases whose
+    estimates coincide share one), on one scale set by the run after its first tenth (where the
+    estimators converge); each panel names the mean over the runs of each run's largest
+    settled error, with its 95 % half-width."""
+    ex = doc["example_run"]
+    tf = np.asarray(ex["t_frames"])
+    panels: list = []  # [(labels, trace)]
+    for label, e in ex["rate_error"].items():
+        e = arr(e)
+        same = next((p for p in panels if np.array_equal(p[1], e, equal_nan=True)), None)
+        if same is None:
+            panels.append(([label], e))
+        else:
+            same[0].append(label)
+    settled = tf >= tf[0] + 0.1 * (tf[-1] - tf[0])
+    tops = [np.nanpercentile(np.abs(e[settled]), 99.5) for _, e in panels if np.isfinite(e[settled]).any()]
+    lim = 1.2 * max(tops) if tops and max(tops) > 0 else 1.0
+    st = styles(list(filters), len(tf))
+    fig, axes = _grid(plt, len(panels), 1, width=8.0, height=1.5)
+    for ax, (labels, e) in zip(axes[:, 0], panels):
+        ax.plot(tf, e, **(st[labels[0]] | {"lw": 0.6, "ls": "-", "marker": None}))
+        ax.axhline(0.0, color="0.5", lw=0.6)
+        ax.set_ylim(-lim, lim)
+        ax.grid(True, alpha=0.3)
+        f = filters[labels[0]]
+        worst, hw = f["summary"].get("max_rate_err"), f["half_width"].get("max_rate_err")
+        stat = "" if worst is None else (f"; each run's largest settled |error|, mean over the runs {worst:.3f}"
+                                          + ("" if hw is None else f" ± {hw:.3f}") + " °/s")
+        ax.set_title(" = ".join(labels) + stat, fontsize=8, loc="left")
+    axes[-1, 0].set_xlabel("time (s)")
+    fig.supylabel("rate-estimate error (°/s)", fontsize=9)
+    fig.suptitle(f"{doc['name']} — run 0 (paper 003 Fig. 4); y scale from t ≥ {tf[0] + 0.1 * (tf[-1] - tf[0]):.0f} s",
+                 fontsize=9)
+    fig.savefig(folder / "rate_error.png", dpi=110)
+    plt.close(fig)
+
+
 def plot_servo(doc, folder: Path):
     """The figures of a servo results folder: run 0's tracking error (``tracking_error.png``, paper
     003 Figs. 5–7) and rate-estimate error (``rate_error.png``, Fig. 4), and the distribution of
@@ -640,20 +678,7 @@ def plot_servo(doc, folder: Path):
     fig.savefig(folder / "tracking_error.png", dpi=110)
     plt.close(fig)
     if ex["rate_error"]:
-        tf = np.asarray(ex["t_frames"])
-        st_frames = styles(list(filters), len(tf))
-        fig, axes = _grid(plt, 1, 1, width=8.0, height=3.2)
-        ax = axes[0, 0]
-        for label, e in ex["rate_error"].items():
-            ax.plot(tf, arr(e), label=label, **(st_frames[label] | {"lw": 0.9}))
-        ax.set_xlabel("time (s)")
-        ax.set_ylabel("rate-estimate error (°/s)")
-        ax.set_title(f"{doc['name']} — run 0 (paper 003 Fig. 4)", fontsize=9)
-        ax.set_ylim(-1, 1)
-        ax.grid(True, alpha=0.3)
-        _legend(fig, axes)
-        fig.savefig(folder / "rate_error.png", dpi=110)
-        plt.close(fig)
+        _rate_error_panels(plt, doc, folder, filters)
     shown = {l: f for l, f in filters.items() if f.get("cdf")}
     if shown:
         fig, axes = _grid(plt, 1, 1, width=8.0, height=3.6)
