@@ -619,42 +619,52 @@ def plot_airborne(doc, folder: Path):
         plt.close(fig)
 
 
-def _rate_error_panels(plt, doc, folder, filters):
-    """``rate_error.png``: run 0's rate-estimate error, one panel per estimator (cases whose
-    estimates coincide share one), on one scale set by the run after its first tenth (where the
-    estimators converge); each panel names the mean over the runs of each run's largest
-    settled error, with its 95 % half-width."""
-    ex = doc["example_run"]
-    tf = np.asarray(ex["t_frames"])
-    panels: list = []  # [(labels, trace)]
-    for label, e in ex["rate_error"].items():
+def _run0_panels(plt, doc, traces, t, settle, ylabel, stat, shared_scale):
+    """Run 0's ``traces`` {case: series} against ``t``, one panel per case (cases whose series
+    coincide share one). The y scale is the settled part's (t ≥ ``settle``, dotted), the
+    transient before it runs off: the same for every panel (``shared_scale``) or each its own.
+    ``stat(label)`` is the panel's title after its labels."""
+    panels: list = []  # [(labels, series)]
+    for label, e in traces.items():
         e = arr(e)
         same = next((p for p in panels if np.array_equal(p[1], e, equal_nan=True)), None)
         if same is None:
             panels.append(([label], e))
         else:
             same[0].append(label)
-    settled = tf >= tf[0] + 0.1 * (tf[-1] - tf[0])
-    tops = [np.nanpercentile(np.abs(e[settled]), 99.5) for _, e in panels if np.isfinite(e[settled]).any()]
-    lim = 1.2 * max(tops) if tops and max(tops) > 0 else 1.0
-    st = styles(list(filters), len(tf))
-    fig, axes = _grid(plt, len(panels), 1, width=8.0, height=1.5)
+    settled = t >= settle
+
+    def top(e):
+        v = np.abs(e[settled & np.isfinite(e)])
+        return 1.2 * np.percentile(v, 99.5) if v.size and np.percentile(v, 99.5) > 0 else None
+
+    tops = [x for x in (top(e) for _, e in panels) if x is not None]
+    st = styles(list(doc["filters"]), len(t))
+    fig, axes = _grid(plt, len(panels), 1, width=8.0, height=1.45)
     for ax, (labels, e) in zip(axes[:, 0], panels):
-        ax.plot(tf, e, **(st[labels[0]] | {"lw": 0.6, "ls": "-", "marker": None}))
+        ax.plot(t, e, **(st[labels[0]] | {"lw": 0.7, "ls": "-", "marker": None}))
         ax.axhline(0.0, color="0.5", lw=0.6)
-        ax.set_ylim(-lim, lim)
+        ax.axvline(settle, color="0.4", lw=0.8, ls=":")
+        lim = max(tops) if shared_scale and tops else top(e)
+        if lim is not None:
+            ax.set_ylim(-lim, lim)
         ax.grid(True, alpha=0.3)
-        f = filters[labels[0]]
-        worst, hw = f["summary"].get("max_rate_err"), f["half_width"].get("max_rate_err")
-        stat = "" if worst is None else (f"; each run's largest settled |error|, mean over the runs {worst:.3f}"
-                                          + ("" if hw is None else f" ± {hw:.3f}") + " °/s")
-        ax.set_title(" = ".join(labels) + stat, fontsize=8, loc="left")
+        ax.set_title(" = ".join(labels) + stat(labels[0]), fontsize=8, loc="left")
     axes[-1, 0].set_xlabel("time (s)")
-    fig.supylabel("rate-estimate error (°/s)", fontsize=9)
-    fig.suptitle(f"{doc['name']} — run 0 (paper 003 Fig. 4); y scale from t ≥ {tf[0] + 0.1 * (tf[-1] - tf[0]):.0f} s",
-                 fontsize=9)
-    fig.savefig(folder / "rate_error.png", dpi=110)
-    plt.close(fig)
+    fig.supylabel(ylabel, fontsize=9)
+    return fig
+
+
+def _settled_max(filters, key, unit, digits):
+    """A panel title's statistic: the mean over the runs of each run's largest settled |error|."""
+    def stat(label):
+        f = filters[label]
+        worst, hw = f["summary"].get(key), f["half_width"].get(key)
+        if worst is None:
+            return ""
+        return (f"; each run's largest settled |error|, mean over the runs {worst:.{digits}f}"
+                + ("" if hw is None else f" ± {hw:.{digits}f}") + f" {unit}")
+    return stat
 
 
 def plot_servo(doc, folder: Path):
@@ -665,20 +675,22 @@ def plot_servo(doc, folder: Path):
     ex = doc["example_run"]
     filters = doc["filters"]
     t = np.asarray(ex["t"])
-    st = styles(list(filters), len(t))
-    fig, axes = _grid(plt, 1, 1, width=8.0, height=3.6)
-    ax = axes[0, 0]
-    for label, e in ex["error"].items():
-        ax.plot(t, 60.0 * arr(e), label=label, **(st[label] | {"lw": 0.9}))
-    ax.set_xlabel("time (s)")
-    ax.set_ylabel("tracking error (′)")
-    ax.set_title(f"{doc['name']} — run 0 (paper 003 Figs. 5–7)", fontsize=9)
-    ax.grid(True, alpha=0.3)
-    _legend(fig, axes)
+    tf = np.asarray(ex["t_frames"])
+    # the errors' settling time (a document without it: the first tenth of the run)
+    settle = ex.get("settle", t[0] + 0.1 * (t[-1] - t[0]))
+    fig = _run0_panels(plt, doc, {k: 60.0 * arr(e) for k, e in ex["error"].items()}, t, settle,
+                       "tracking error (′)", _settled_max(filters, "max_track_err", "′", 3), shared_scale=False)
+    fig.suptitle(f"{doc['name']} — run 0 (paper 003 Figs. 5–7); each panel's scale from t ≥ {settle:g} s (dotted)",
+                 fontsize=9)
     fig.savefig(folder / "tracking_error.png", dpi=110)
     plt.close(fig)
     if ex["rate_error"]:
-        _rate_error_panels(plt, doc, folder, filters)
+        fig = _run0_panels(plt, doc, ex["rate_error"], tf, settle, "rate-estimate error (°/s)",
+                           _settled_max(filters, "max_rate_err", "°/s", 3), shared_scale=True)
+        fig.suptitle(f"{doc['name']} — run 0 (paper 003 Fig. 4); one scale, from t ≥ {settle:g} s (dotted)", fontsize=9)
+        fig.savefig(folder / "rate_error.png", dpi=110)
+        plt.close(fig)
+    st = styles(list(filters), len(t))
     shown = {l: f for l, f in filters.items() if f.get("cdf")}
     if shown:
         fig, axes = _grid(plt, 1, 1, width=8.0, height=3.6)

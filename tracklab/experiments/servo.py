@@ -332,7 +332,7 @@ class ServoExperiment:
             "training": training,
             "filters": cases,
             "example_run": {"t": t[::stride], "error": {k: v["error"][::stride] for k, v in examples.items()},
-                            "t_frames": self.frame_dt * np.arange(self.frames),
+                            "t_frames": self.frame_dt * np.arange(self.frames), "settle": self.settle,
                             "rate_error": {k: v["rate_error"] for k, v in examples.items()
                                            if self._case(k).estimator not in (None, "perfect")}},
         } | ({"auto": {"target": target, "max_runs": max_runs, "statistic": "maximum-tracking-error",
