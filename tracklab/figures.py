@@ -619,52 +619,38 @@ def plot_airborne(doc, folder: Path):
         plt.close(fig)
 
 
-def _run0_panels(plt, doc, traces, t, settle, ylabel, stat, shared_scale):
-    """Run 0's ``traces`` {case: series} against ``t``, one panel per case (cases whose series
-    coincide share one). The y scale is the settled part's (t ≥ ``settle``, dotted), the
-    transient before it runs off: the same for every panel (``shared_scale``) or each its own.
-    ``stat(label)`` is the panel's title after its labels."""
-    panels: list = []  # [(labels, series)]
-    for label, e in traces.items():
-        e = arr(e)
-        same = next((p for p in panels if np.array_equal(p[1], e, equal_nan=True)), None)
-        if same is None:
-            panels.append(([label], e))
-        else:
-            same[0].append(label)
+def _run0_panels(plt, doc, traces, t, settle, ylabel, key, unit, shared_scale):
+    """Run 0's ``traces`` {case: series} against ``t``, one panel per case, each titled with the
+    mean over the runs of each run's largest settled |error| (summary ``key``, in ``unit``) and
+    its 95 % half-width. The y scale is the settled part's (t ≥ ``settle``, dotted), the transient
+    before it runs off: the same for every panel (``shared_scale``) or each its own."""
+    traces = {label: arr(e) for label, e in traces.items()}
     settled = t >= settle
 
     def top(e):
         v = np.abs(e[settled & np.isfinite(e)])
-        return 1.2 * np.percentile(v, 99.5) if v.size and np.percentile(v, 99.5) > 0 else None
+        lim = 1.2 * np.percentile(v, 99.5) if v.size else 0.0
+        return lim if lim > 0 else None
 
-    tops = [x for x in (top(e) for _, e in panels) if x is not None]
+    tops = [x for x in map(top, traces.values()) if x is not None]
     st = styles(list(doc["filters"]), len(t))
-    fig, axes = _grid(plt, len(panels), 1, width=8.0, height=1.45)
-    for ax, (labels, e) in zip(axes[:, 0], panels):
-        ax.plot(t, e, **(st[labels[0]] | {"lw": 0.7, "ls": "-", "marker": None}))
+    fig, axes = _grid(plt, len(traces), 1, width=8.0, height=1.45)
+    for ax, (label, e) in zip(axes[:, 0], traces.items()):
+        ax.plot(t, e, **(st[label] | {"lw": 0.7, "ls": "-", "marker": None}))
         ax.axhline(0.0, color="0.5", lw=0.6)
         ax.axvline(settle, color="0.4", lw=0.8, ls=":")
         lim = max(tops) if shared_scale and tops else top(e)
         if lim is not None:
             ax.set_ylim(-lim, lim)
         ax.grid(True, alpha=0.3)
-        ax.set_title(" = ".join(labels) + stat(labels[0]), fontsize=8, loc="left")
+        f = doc["filters"][label]
+        worst, hw = f["summary"].get(key), f["half_width"].get(key)
+        stat = "" if worst is None else (f"; each run's largest settled |error|, mean over the runs {worst:.3f}"
+                                          + ("" if hw is None else f" ± {hw:.3f}") + f" {unit}")
+        ax.set_title(label + stat, fontsize=8, loc="left")
     axes[-1, 0].set_xlabel("time (s)")
     fig.supylabel(ylabel, fontsize=9)
     return fig
-
-
-def _settled_max(filters, key, unit, digits):
-    """A panel title's statistic: the mean over the runs of each run's largest settled |error|."""
-    def stat(label):
-        f = filters[label]
-        worst, hw = f["summary"].get(key), f["half_width"].get(key)
-        if worst is None:
-            return ""
-        return (f"; each run's largest settled |error|, mean over the runs {worst:.{digits}f}"
-                + ("" if hw is None else f" ± {hw:.{digits}f}") + f" {unit}")
-    return stat
 
 
 def plot_servo(doc, folder: Path):
@@ -679,23 +665,22 @@ def plot_servo(doc, folder: Path):
     # the errors' settling time (a document without it: the first tenth of the run)
     settle = ex.get("settle", t[0] + 0.1 * (t[-1] - t[0]))
     fig = _run0_panels(plt, doc, {k: 60.0 * arr(e) for k, e in ex["error"].items()}, t, settle,
-                       "tracking error (′)", _settled_max(filters, "max_track_err", "′", 3), shared_scale=False)
+                       "tracking error (′)", "max_track_err", "′", shared_scale=False)
     fig.suptitle(f"{doc['name']} — run 0 (paper 003 Figs. 5–7); each panel's scale from t ≥ {settle:g} s (dotted)",
                  fontsize=9)
     fig.savefig(folder / "tracking_error.png", dpi=110)
     plt.close(fig)
     if ex["rate_error"]:
         fig = _run0_panels(plt, doc, ex["rate_error"], tf, settle, "rate-estimate error (°/s)",
-                           _settled_max(filters, "max_rate_err", "°/s", 3), shared_scale=True)
+                           "max_rate_err", "°/s", shared_scale=True)
         fig.suptitle(f"{doc['name']} — run 0 (paper 003 Fig. 4); one scale, from t ≥ {settle:g} s (dotted)", fontsize=9)
         fig.savefig(folder / "rate_error.png", dpi=110)
         plt.close(fig)
-    st = styles(list(filters), len(t))
     shown = {l: f for l, f in filters.items() if f.get("cdf")}
     if shown:
         fig, axes = _grid(plt, 1, 1, width=8.0, height=3.6)
         ax = axes[0, 0]
-        groups = _cdf_panel(ax, shown, st, "max_track_err", "max_track_err_p{p}")
+        groups = _cdf_panel(ax, shown, styles(list(filters), len(t)), "max_track_err", "max_track_err_p{p}")
         ax.set_xlabel("run's maximum tracking error after settling (′)")
         ax.set_ylabel("fraction of runs with error ≤ x")
         ax.set_title(f"{doc['name']}: {doc['runs']} runs", fontsize=9)

@@ -110,7 +110,8 @@ def decoupled(timing: Timing, separate=False) -> Tracker:
     view = jnp.array([0, 1, 2, 3, 4, 5, 6, 9, 10] if separate else list(range(9)))
     signals = SIGNALS[separate]
     bounds = CHANNELS[:len(signals)]
-    turned = (0, 1) + (None,) * (len(bounds) - 2)  # the ε rows (EPS) the antenna's turn enters, per channel
+    # per channel, which of the antenna's turns enters it, and at which of its rows: the ε rows (EPS)
+    turned = [next(((t, e - a) for t, e in enumerate(EPS) if a <= e < b), None) for a, b in bounds]
 
     def plan(params, x, P, w_a):
         cmd = command(x, params.lam)
@@ -120,7 +121,7 @@ def decoupled(timing: Timing, separate=False) -> Tracker:
             xs, Ps, w = carry
             w_next, turn = antenna_motion(w, cmd, timing.dt, timing.lag)
             xs = [mm(phi, xc) + gam for (phi, gam, _, _), xc in zip(blocks, xs)]
-            xs = [xc if t is None else xc.at[0].add(-turn[t]) for xc, t in zip(xs, turned)]
+            xs = [xc if on is None else xc.at[on[1]].add(-turn[on[0]]) for xc, on in zip(xs, turned)]
             Ps = [symmetrise(mm(mm(phi, Pc), phi.T) + Qd) for (phi, _, Qd, _), Pc in zip(blocks, Ps)]
             return (xs, Ps, w_next), jnp.concatenate(xs)
 

@@ -547,26 +547,23 @@ def _run_dependence(init, body, prior, z_k, truth_k, fixed, may_share):
     tracing the filter's Python again."""
     leaves = jax.tree_util.tree_leaves
     fixed_k = jax.tree_util.tree_map(lambda a: a[0], fixed)
-    init_jaxpr, state = _traced(init, (prior,))
-    init_jaxpr = init_jaxpr.jaxpr
+    init_closed, state = _traced(init, (prior,))
     n_state = len(leaves(state))
     example = (state, (z_k, truth_k) + tuple(fixed_k))
     step, shapes = _traced(body, example)
-    inputs = shapes[1]
-    step_jaxpr = step.jaxpr
     state_flags = [True] * n_state
     if may_share:
-        state_flags = _tainted(init_jaxpr, [True] * len(leaves(prior)))
+        state_flags = _tainted(init_closed.jaxpr, [True] * len(leaves(prior)))
     for _ in range(n_state + 1):  # to the fixed point: a dependent leaf stays dependent
         # the inputs that differ between runs: the state's dependent leaves, the measurements and the truth
         flags = state_flags + [True] * len(leaves((z_k, truth_k))) + [False] * len(leaves(fixed_k))
-        out = _tainted(step_jaxpr, flags)
+        out = _tainted(step.jaxpr, flags)
         new = [a or b for a, b in zip(out[:n_state], state_flags)]
         if new == state_flags:
             break
         state_flags = new
     shared = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(state), [not f for f in state_flags])
-    return shared, out[n_state:], inputs, _replayed(step, example, shapes)
+    return shared, out[n_state:], shapes[1], _replayed(step, example, shapes)
 
 
 def _with_errors(body, dtype):
