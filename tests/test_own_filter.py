@@ -197,19 +197,25 @@ print(json.dumps({"before": before, "after": after, "devices": devices, "mode": 
 
 
 def test_configure_sets_the_cpu_devices_and_keeps_given_flags():
+    """A flag the user's XLA_FLAGS name is kept; one ``configure`` added gives way to a world's own
+    compiler option (the airborne world's fusion emitters), one the user named does not."""
     code = """
 import json, os
 import tracklab
 tracklab.configure()
 import jax
-print(json.dumps([os.environ["XLA_FLAGS"], jax.device_count(), jax.config.jax_enable_x64]))
+from tracklab.montecarlo import runner
+world = runner.World(None, None, 1, 1, (("xla_cpu_use_fusion_emitters", True), ("xla_force_host_platform_device_count", 7)))
+print(json.dumps([os.environ["XLA_FLAGS"], jax.device_count(), jax.config.jax_enable_x64,
+                  runner.world_compiler_options(world)]))
 """
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=3")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    flags, devices, x64 = json.loads(out.stdout.strip().splitlines()[-1])
+    flags, devices, x64, options = json.loads(out.stdout.strip().splitlines()[-1])
     assert devices == 3 and x64 is True
     assert "--xla_cpu_multi_thread_eigen=false" in flags and flags.count("device_count") == 1
     assert "--xla_cpu_use_fusion_emitters=false" in flags
+    assert options == {"xla_cpu_use_fusion_emitters": True}
 
 
 # ------------------------------------------------------------------- experiment files

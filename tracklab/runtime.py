@@ -53,9 +53,17 @@ def _backend_started() -> bool:
     return bool(xla_bridge.backends_are_initialized())
 
 
+_USER_FLAGS: str | None = None  # XLA_FLAGS as the user set them, before ``configure`` added its own
+
+
+def _user_flags() -> str:
+    """XLA_FLAGS as the user set them: without the flags ``configure`` added in this process."""
+    return os.environ.get("XLA_FLAGS", "") if _USER_FLAGS is None else _USER_FLAGS
+
+
 def not_in_xla_flags(options: dict) -> dict:
-    """The XLA options of ``options`` that XLA_FLAGS does not name: a flag the user set is theirs."""
-    flags = os.environ.get("XLA_FLAGS", "")
+    """The XLA options of ``options`` that the user's XLA_FLAGS do not name: a flag the user set is theirs."""
+    flags = _user_flags()
     return {k: v for k, v in options.items() if k not in flags}
 
 
@@ -75,7 +83,10 @@ def configure(*, cpu_devices: int | None = None, eigen_threads: bool = False, fu
     if not fusion_emitters:
         want["xla_cpu_use_fusion_emitters"] = "false"
     want["xla_force_host_platform_device_count"] = int(cpu_devices or usable_cores())
-    want = not_in_xla_flags(want)
+    global _USER_FLAGS
+    if _USER_FLAGS is None:
+        _USER_FLAGS = os.environ.get("XLA_FLAGS", "")
+    want = {k: v for k, v in want.items() if k not in os.environ.get("XLA_FLAGS", "")}  # a flag set is kept
     started = _backend_started()
     if want and not started:
         flags = [os.environ.get("XLA_FLAGS", "")] + [f"--{k}={v}" for k, v in want.items()]

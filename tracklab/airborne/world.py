@@ -107,6 +107,8 @@ def world(structure: AirborneStructure) -> runner.World:
     """The airborne world of a structure (one per structure: its compiled programs are shared)."""
     # XLA's CPU fusion emitters on for these programs (tracklab.configure() turns them off): with
     # them off, the five-tracker files compile about 12 s longer (airborne_radar_lambda 24.4 against
-    # 36.5 s, airborne_radar_moose 26.6 against 36.5 s) and run no faster (benchmarks/compile.md)
+    # 36.5 s, airborne_radar_moose 26.6 against 36.5 s) and run no faster (benchmarks/compile.md);
+    # the three-tracker ones compile about 3 s faster off (airborne_radar 10.8 against 14.1 s, 16 runs
+    # a chunk), so over the five files on is the better choice
     return runner.World(structure, _chunk(structure), len(structure.trackers), structure.chunk,
                         (("xla_cpu_use_fusion_emitters", True),))
