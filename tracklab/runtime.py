@@ -20,7 +20,8 @@ it before anything touches JAX, as the README shows. It sets:
   parameters, its constants) are float64 like the engine's.
 
 The XLA flags are read when JAX starts its CPU backend, so they can only be set before
-the first computation; a flag XLA_FLAGS already names is left as it is.
+the first computation; a flag XLA_FLAGS already names is left as it is, and it also wins over a
+world's own compiler options, which only the flags ``configure`` added give way to.
 
 ``start_processes()`` joins a run of several processes (one per host or per GPU) through
 JAX's own multi-process runtime (``jax.distributed``): the Monte-Carlo runner then gives
