@@ -347,3 +347,18 @@ def test_moose_that_cannot_switch_is_the_joint_ekf():
     (xe, Pe), (xm, Pm) = jax.jit(lambda: (run(cd_ekf(tm), base), run(moose(tm), mparams)))()
     np.testing.assert_allclose(np.asarray(xm), np.asarray(xe), rtol=1e-10, atol=1e-13)
     np.testing.assert_allclose(np.asarray(Pm), np.asarray(Pe), rtol=1e-10, atol=1e-16)
+
+
+def test_the_fusion_emitters_are_on_when_trackers_share_their_code():
+    """Each bundled airborne file's programs compile with XLA's fusion emitters on exactly when
+    two of its trackers have the same kind and range-velocity channel (``world.compiler_options``)."""
+    from pathlib import Path
+
+    from tracklab.airborne.world import compiler_options
+
+    on = (("xla_cpu_use_fusion_emitters", True),)
+    found = {}
+    for path in sorted((Path(__file__).resolve().parents[1] / "experiments").glob("airborne_radar*.toml")):
+        found[path.stem] = compiler_options(load_experiment(path).structure()) == on
+    assert found == {"airborne_radar": False, "airborne_radar_lambda": True, "airborne_radar_mismatch": True,
+                     "airborne_radar_moose": True, "airborne_radar_range": False}

@@ -15,7 +15,8 @@ it before anything touches JAX, as the README shows. It sets:
   writes each fused kernel with its older element-by-element emitter. The lidar crossing's
   six-filter program compiles in about 3.3 s instead of 5.1 s and runs as fast or faster
   (``benchmarks/compile.md``). A world whose programs do better with them declares so
-  (``runner.World.compiler_options``): the airborne closed loops turn them back on.
+  (``runner.World.compiler_options``): the airborne closed loops turn them back on when two
+  trackers share their code.
 * **JAX's 64-bit mode** (``jax_enable_x64``), so that arrays a user builds (a filter's
   parameters, its constants) are float64 like the engine's.
 

@@ -105,10 +105,18 @@ def _chunk(structure: AirborneStructure):
 @functools.lru_cache(maxsize=16)
 def world(structure: AirborneStructure) -> runner.World:
     """The airborne world of a structure (one per structure: its compiled programs are shared)."""
-    # XLA's CPU fusion emitters on for these programs (tracklab.configure() turns them off): with
-    # them off, the five-tracker files compile about 12 s longer (airborne_radar_lambda 24.4 against
-    # 36.5 s, airborne_radar_moose 26.6 against 36.5 s) and run no faster (benchmarks/compile.md);
-    # the three-tracker ones compile about 3 s faster off (airborne_radar 10.8 against 14.1 s, 16 runs
-    # a chunk), so over the five files on is the better choice
     return runner.World(structure, _chunk(structure), len(structure.trackers), structure.chunk,
-                        (("xla_cpu_use_fusion_emitters", True),))
+                        compiler_options(structure))
+
+
+def compiler_options(structure: AirborneStructure) -> tuple:
+    """XLA's CPU fusion emitters (``tracklab.configure()`` turns them off) on when two trackers
+    share their code (kind and range-velocity channel): each such tracker then costs about half
+    the compiling it costs with them off, while one whose code no other shares costs more. Compiling a
+    16-run chunk, on against off: airborne_radar_lambda (five joint EKFs) 18.7 against 27.3 s,
+    airborne_radar_mismatch (five) 19.5 against 30.9 s, airborne_radar_moose (three and two
+    Moose) 21.2 against 29.3 s; airborne_radar (three kinds) 14.1 against 10.8 s,
+    airborne_radar_range (three codes) 16.0 against 13.1 s; one joint EKF alone 7.2 against
+    5.5 s (``benchmarks/compile.md``)."""
+    codes = {(t.kind, t.range_velocity) for t in structure.trackers}
+    return (("xla_cpu_use_fusion_emitters", True),) if len(codes) < len(structure.trackers) else ()
