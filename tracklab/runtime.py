@@ -63,10 +63,13 @@ def _user_flags() -> str:
     return os.environ.get("XLA_FLAGS", "") if _USER_FLAGS is None else _USER_FLAGS
 
 
+def _not_named(options: dict, flags: str) -> dict:
+    return {k: v for k, v in options.items() if k not in flags}
+
+
 def not_in_xla_flags(options: dict) -> dict:
     """The XLA options of ``options`` that the user's XLA_FLAGS do not name: a flag the user set is theirs."""
-    flags = _user_flags()
-    return {k: v for k, v in options.items() if k not in flags}
+    return _not_named(options, _user_flags())
 
 
 def configure(*, cpu_devices: int | None = None, eigen_threads: bool = False, fusion_emitters: bool = False,
@@ -88,7 +91,7 @@ def configure(*, cpu_devices: int | None = None, eigen_threads: bool = False, fu
     global _USER_FLAGS
     if _USER_FLAGS is None:
         _USER_FLAGS = os.environ.get("XLA_FLAGS", "")
-    want = {k: v for k, v in want.items() if k not in os.environ.get("XLA_FLAGS", "")}  # a flag set is kept
+    want = _not_named(want, os.environ.get("XLA_FLAGS", ""))  # a flag already set is kept
     started = _backend_started()
     if want and not started:
         flags = [os.environ.get("XLA_FLAGS", "")] + [f"--{k}={v}" for k, v in want.items()]
