@@ -275,3 +275,28 @@ def test_auto_runs_on_a_closed_loop_stop_once_the_target_is_met(tmp_path):
     fewer = fixed.simulate(n - 4, fixed.seed)
     assert any(f["half_width"]["max_track_err"] > 0.08 * f["summary"]["max_track_err"]
                for f in fewer["filters"].values())
+
+
+def test_a_value_and_its_half_width_are_shown_to_the_half_widths_two_digits():
+    """Every place a value is shown with its interval (tables, legends, the servo figures' panel
+    titles) writes the half-width to two significant digits and the value to the same decimal: a
+    half-width below the column's last decimal is not shown as 0.000; one that is exactly zero (a
+    deterministic case) is 0; a missing value is a dash."""
+    from tracklab.figures import _run0_panels, pyplot
+    from tracklab.intervals import with_half_width
+
+    assert with_half_width(12.1946972, 0.009588753814, "{:.3f}") == "12.1947 ± 0.0096"
+    assert with_half_width(0.3016276549, 0.00055) == "0.30163 ± 0.00055"
+    assert with_half_width(-0.5, 0.25, sign=True) == "-0.50 ± 0.25"
+    assert with_half_width(0.02838605798, 0.0, "{:.3f}") == "0.028 ± 0"
+    assert with_half_width(0.5, None, "{:.3f}") == "0.500"
+    assert with_half_width(float("nan"), 0.1) == "—"
+    doc = {"filters": {"a": {"summary": {"e": 0.02838605798}, "half_width": {"e": 0.0}},
+                       "b": {"summary": {"e": 2.820456407}, "half_width": {"e": 0.0004}}}}
+    t = np.linspace(0.0, 1.0, 11)
+    plt = pyplot()
+    fig = _run0_panels(plt, doc, {"a": np.sin(t), "b": np.cos(t)}, t, 0.5, "error", "e", "′", shared_scale=False)
+    titles = [ax.get_title(loc="left") for ax in fig.axes]
+    plt.close(fig)
+    assert titles[0].endswith("mean over the runs 0.028 ± 0 ′")
+    assert titles[1].endswith("mean over the runs 2.82046 ± 0.00040 ′")

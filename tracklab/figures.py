@@ -645,8 +645,8 @@ def _run0_panels(plt, doc, traces, t, settle, ylabel, key, unit, shared_scale):
         ax.grid(True, alpha=0.3)
         f = doc["filters"][label]
         worst, hw = f["summary"].get(key), f["half_width"].get(key)
-        stat = "" if worst is None else (f"; each run's largest settled |error|, mean over the runs {worst:.3f}"
-                                          + ("" if hw is None else f" ± {hw:.3f}") + f" {unit}")
+        stat = "" if worst is None else (f"; each run's largest settled |error|, mean over the runs "
+                                          f"{with_half_width(worst, hw, '{:.3f}')} {unit}")
         ax.set_title(label + stat, fontsize=8, loc="left")
     axes[-1, 0].set_xlabel("time (s)")
     fig.supylabel(ylabel, fontsize=9)
