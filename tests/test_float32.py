@@ -15,6 +15,12 @@ from tracklab.metrics import statistics
 from tracklab.models import ca, cv
 from tracklab.sensors import Sensor
 
+# the filter kinds test_float32_matches_float64_on_the_same_measurements runs in single precision
+# on the polar sensor (CV model, the IMM on CV and CT)
+ON_POLAR = [("ekf", {}), ("cmkf", {"debias": "unbiased"}), ("sequential_ekf", {}), ("polar_kf", {}), ("ukf", {}),
+            ("alpha_beta", {"gains": "explicit"}), ("stf", {}), ("imm", {"models": ("cv", "ct")})]
+
+
 def _distinct_experiments():
     """(file, filter labels to check) for the bundled experiments the Monte-Carlo engine runs: all
     but the files with a [servo] table (tests/test_servo.py) or an [airborne] table
@@ -25,7 +31,9 @@ def _distinct_experiments():
     the filters of kinds it adds on its sensors (whole if all are new), and a file that adds none
     is checked only if its scenario kind is not yet, on its first filter. A filter kind checked
     again on the same sensors exercises nothing new (the scenario's truth is checked with the
-    scenario) and would double the suite's compile time."""
+    scenario) and would double the suite's compile time. The kinds that
+    test_float32_matches_float64_on_the_same_measurements runs on the polar sensor count as
+    checked on it."""
     import tomllib
 
     found = []
@@ -36,7 +44,9 @@ def _distinct_experiments():
         sensors = raw["sensor"] if isinstance(raw["sensor"], list) else [raw["sensor"]]
         filters = {f["label"]: (f["kind"], f.get("model", "cv")) for f in raw["filter"]}
         found.append((p, raw["scenario"]["kind"], tuple(s["kind"] for s in sensors), filters))
-    covered: dict = {}  # sensor kinds -> filter kinds already checked
+    # sensor kinds -> (filter kind, model) already checked: on the polar sensor, those of
+    # test_float32_matches_float64_on_the_same_measurements
+    covered: dict = {("polar",): {(kind, "cv") for kind, _ in ON_POLAR if kind != "imm"}}
     scenarios = set()
     out = []
     for p, scenario, sensors, filters in sorted(found, key=lambda e: (-len(set(e[3].values())), e[0].name)):
@@ -94,9 +104,7 @@ def _lidar_measurements(seed=0, T=200):
     return truth, z + rng.normal(size=z.shape) * [100.0, 0.003]
 
 
-@pytest.mark.parametrize("kind,opts", [("ekf", {}), ("cmkf", {"debias": "unbiased"}), ("sequential_ekf", {}),
-                                       ("polar_kf", {}), ("ukf", {}), ("alpha_beta", {"gains": "explicit"}),
-                                       ("stf", {}), ("imm", {"models": ("cv", "ct")})])
+@pytest.mark.parametrize("kind,opts", ON_POLAR)
 def test_float32_matches_float64_on_the_same_measurements(kind, opts):
     """Joseph-form updates keep single precision within centimetres of double at 20 km."""
     truth, z = _lidar_measurements()
