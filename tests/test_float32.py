@@ -44,8 +44,7 @@ def _distinct_experiments():
         sensors = raw["sensor"] if isinstance(raw["sensor"], list) else [raw["sensor"]]
         filters = {f["label"]: (f["kind"], f.get("model", "cv")) for f in raw["filter"]}
         found.append((p, raw["scenario"]["kind"], tuple(s["kind"] for s in sensors), filters))
-    # sensor kinds -> (filter kind, model) already checked: on the polar sensor, those of
-    # test_float32_matches_float64_on_the_same_measurements
+    # sensor kinds -> (filter kind, model) already checked (the IMM's models are not its "model" field)
     covered: dict = {("polar",): {(kind, "cv") for kind, _ in ON_POLAR if kind != "imm"}}
     scenarios = set()
     out = []
