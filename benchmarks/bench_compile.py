@@ -30,7 +30,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench_rerun import _git, first_line
+from bench_rerun import _cpu, _git, first_line
+from written import write_run
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT = ["experiments/lidar_crossing.toml", "experiments/real_flights_radar_carrier_pattern.toml"]
@@ -92,8 +93,10 @@ def main():
     lines = [
         "# Compile time of `tracklab run`",
         "",
-        f"- Date: {_dt.datetime.now(_dt.timezone.utc):%Y-%m-%d %H:%M} UTC, commit {_git(ROOT)}",
-        f"- Machine: nproc = {os.cpu_count()}, {platform.processor() or platform.machine()}, Python "
+        f"## Cold, warm and one filter added ({_dt.datetime.now(_dt.timezone.utc):%Y-%m-%d %H:%M} UTC, "
+        f"commit {_git(ROOT)})",
+        "",
+        f"- Machine: nproc = {os.cpu_count()}, {_cpu()}, Python "
         f"{platform.python_version()}",
         f"- Command: `python benchmarks/bench_compile.py {' '.join(a.files)} --runs {a.runs}`",
         "",
@@ -105,7 +108,7 @@ def main():
         "| Experiment | Cache | Wall (s) | Of it compiling or loading (s) | Load average (1 min) |",
         "|---|---|---:|---:|---:|",
     ] + [f"| `{f}` | {lab} | {w:.1f} | {c:.1f} | {ld:.2f} |" for f, lab, w, c, ld in rows] + [""]
-    a.out.write_text("\n".join(lines))
+    write_run(a.out, "\n".join(lines), "bench_compile.py", keep_earlier=True)  # above the earlier runs
     print(f"wrote {a.out}")
 
 

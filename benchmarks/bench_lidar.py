@@ -20,6 +20,8 @@ import sys
 import time
 from pathlib import Path
 
+from written import write_run
+
 ROOT = Path(__file__).resolve().parent.parent
 EXPERIMENT = ROOT / "experiments" / "lidar_crossing.toml"
 DEFAULT_CHUNK = 1000  # runs per chunk of the per-filter table
@@ -109,7 +111,6 @@ def _pass(fn, params, key, chunks, lanes):
     without the runs that diverged (none do in these benchmarks, but it would be charged), add on
     the host (``runner.Accumulator``).
     Returns (per-chunk seconds, accumulator, chunks run twice)."""
-    import jax
     import jax.numpy as jnp
 
     from tracklab.montecarlo import runner
@@ -525,7 +526,7 @@ def main():
     print(md)
     out = a.out if a.out is not None else (None if a.quick else ROOT / "benchmarks" / "lidar.md")
     if out is not None:
-        out.write_text(md)
+        write_run(out, md, "bench_lidar.py")
         print(f"written {out}")
 
 

@@ -20,6 +20,8 @@ import sys
 import time
 from pathlib import Path
 
+from written import write_run
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -74,7 +76,7 @@ def main():
          f"- {n:,} draws per call ({runs} runs × {steps} steps × {m}); best of 5 timed calls", "",
          "| Draws | M/s |", "|---|---:|"]
     L += [f"| {name} | {rate / 1e6:.1f} |" for name, rate in rows]
-    (ROOT / "benchmarks" / "random.md").write_text("\n".join(L) + "\n")
+    write_run(ROOT / "benchmarks" / "random.md", "\n".join(L), "bench_random.py")
     print("wrote benchmarks/random.md")
 
 

@@ -39,6 +39,8 @@ import tomllib
 from importlib import metadata
 from pathlib import Path
 
+from written import write_run
+
 ROOT = Path(__file__).resolve().parent.parent
 EXPERIMENT = ROOT / "experiments" / "lidar_crossing.toml"
 
@@ -241,7 +243,7 @@ def main():
     print(md)
     out = None if (a.quick or a.print) else (a.out or ROOT / "benchmarks" / "rerun.md")
     if out is not None:
-        out.write_text(md)
+        write_run(out, md, "bench_rerun.py")
         print(f"written {out}")
 
 

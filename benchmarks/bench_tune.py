@@ -22,10 +22,10 @@ import os
 import platform
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 from bench_rerun import _cpu, _git
+from written import write_run
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = Path(__file__).resolve().parent / "tune.md"
@@ -119,7 +119,7 @@ def main(argv=None):
     if args.print:
         print(text)
     else:
-        OUT.write_text(text)
+        write_run(OUT, text, "bench_tune.py")
         print(f"wrote {OUT}")
 
 

@@ -27,6 +27,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from written import write_run
+
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
@@ -776,7 +778,7 @@ def main():
     print(md)
     out = a.out if a.out is not None else (None if a.quick else ROOT / "benchmarks" / "results.md")
     if out is not None:
-        out.write_text(md)
+        write_run(out, md, "compare.py")
         print(f"written {out}")
 
 

@@ -34,6 +34,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from written import write_run
+
 ROOT = Path(__file__).resolve().parent.parent
 FILES = [  # (kind, experiment file)
     ("open loop, polar sensor, six filters", "experiments/lidar_crossing.toml"),
@@ -154,7 +156,7 @@ def main():
     print(text)
     out = args.out or (ROOT / "benchmarks" / "gpu.md" if d0["backend"] == "gpu" else None)
     if out:
-        Path(out).write_text(text)
+        write_run(out, text, "gpu.py")
         print(f"written to {out}")
 
 
