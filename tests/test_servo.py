@@ -205,3 +205,47 @@ estimator = "KF"
         a, b = double["filters"][label]["summary"], single["filters"][label]["summary"]
         assert b["max_track_err"] == pytest.approx(a["max_track_err"], rel=0.02)
         assert b["random_err"] == pytest.approx(a["random_err"], rel=0.05)
+
+
+def test_a_dekf_trained_first_is_announced_and_its_training_timed(tmp_path, monkeypatch, capsys):
+    """A DEKF with ``train_steps`` is trained before the runs: the command says so on stderr before
+    anything runs (minutes on a real file, with no run finished to report) and prints the training's
+    steps, seconds and held-out loss after the runs' line, whose wall time is the runs' alone;
+    stats.json keeps them."""
+    import json
+
+    from test_cli import in_process
+
+    (tmp_path / "s.toml").write_text("""
+[experiment]
+name = "servo_trained"
+runs = 2
+
+[servo]
+frames = 300
+settle = 1.5
+
+[target]
+kind = "cone"
+
+[[estimator]]
+label = "DEKF"
+kind = "dekf"
+hidden = 2
+train_steps = 3
+train_runs = 2
+
+[[case]]
+mode = "on_axis"
+estimator = "DEKF"
+""")
+    proc = in_process("run", tmp_path / "s.toml", "--no-figures", "--out", tmp_path / "out", cwd=tmp_path,
+                      monkeypatch=monkeypatch, capsys=capsys)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr.startswith("servo_trained: DEKF: training w0 and λ first (3 Adam steps of 2 runs each)\n")
+    lines = proc.stdout.splitlines()
+    assert lines[0].startswith("# servo_trained: 2 runs x 300 steps") and lines[1].startswith(
+        "# DEKF: trained first, 3 Adam steps in ")
+    info = json.loads((tmp_path / "out" / "stats.json").read_text())["training"]["DEKF"]
+    assert info["steps"] == 3 and len(info["loss_history"]) == 3 and info["wall_s"] > 0
+    assert f"held-out loss {info['heldout_before']:.4g} -> {info['heldout_after']:.4g}" in lines[1]

@@ -73,12 +73,18 @@ def cmd_run(args) -> int:
             print(f"\r{exp.name}: {done}/{total} runs", end="\n" if done == total else "", file=sys.stderr, flush=True)
 
     extra = {"target_precision": target} if target is not None else {}
+    if writes():  # what would otherwise be minutes without a line (a DEKF trained first)
+        for line in getattr(exp, "before_runs", list)():
+            print(f"{exp.name}: {line}", file=sys.stderr, flush=True)
     doc = exp.run(runs=runs, seed=args.seed, out=out, progress=progress, figures=not args.no_figures,
                   precision="float32" if args.float32 else None, max_memory=args.max_memory, **extra)
     if doc is None:  # a process other than 0 of a multi-process run: process 0 writes and prints
         return 0
     print(f"# {exp.name}: {doc['runs']} runs x {exp.steps} steps, window {exp.window[0]}-{exp.window[1]}, "
           f"{doc['wall_s']:.1f} s wall, {doc['compile_s']:.1f} s of it compiling or loading the program")
+    for label, info in (doc.get("training") or {}).items():  # before the runs, not in their wall time
+        print(f"# {label}: trained first, {info['steps']} Adam steps in {info['wall_s']:.1f} s; held-out loss "
+              f"{info['heldout_before']:.4g} -> {info['heldout_after']:.4g}")
     print(markdown_table(doc), end="")
     print(f"results written to {out}/")
     return 0

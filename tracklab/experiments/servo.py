@@ -7,6 +7,7 @@ its Monte-Carlo run (through the runner), its case statistics, tables and figure
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -339,11 +340,17 @@ class ServoExperiment:
                        "reached": precision_reached(out.samples, target, self.level, headline)}}
              if target is not None else {})
 
+    def before_runs(self) -> list[str]:
+        """What a run does before its Monte-Carlo runs, a line each: the DEKFs it trains first."""
+        return [f"{e.label}: training w0 and λ first ({e.train_steps} Adam steps of {e.train_runs} runs each)"
+                for e in self.estimators if e.kind == "dekf" and e.train_steps > 0]
+
     def train(self, cfg: EstimatorConfig, est, progress=None):
         """Train a DEKF estimator's initial weights and λ on the rate it feeds forward; held-out evaluation."""
         from tracklab.servo.loops import Estimator
         from tracklab.servo.training import train_dekf
 
+        t0 = time.perf_counter()
         net = est.filter_net
         frames = min(self.frames, int(round((self.settle + 10.0) / self.frame_dt)))
         trained, history, before, after = train_dekf(
@@ -351,7 +358,8 @@ class ServoExperiment:
             sigma=max(self.noise, 1e-3) / 3600.0, settle=min(self.settle, 0.5 * frames * self.frame_dt),
             steps=cfg.train_steps, lr=cfg.train_lr, runs_per_step=cfg.train_runs, seed=cfg.seed + 1)
         info = {"steps": len(history), "loss_history": [v for _, v in history], "heldout_before": before,
-                "heldout_after": after, "forget": float(trained["forget"]), "frames": frames}
+                "heldout_after": after, "forget": float(trained["forget"]), "frames": frames,
+                "wall_s": time.perf_counter() - t0}
         return Estimator(est.filter, est.ahead, trained, net), info
 
     def _case(self, label):
