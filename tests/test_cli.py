@@ -316,6 +316,8 @@ def test_list(tmp_path):
         assert kind in words, kind
     for sensor in ("polar", "spherical", "cartesian"):
         assert sensor in words, sensor
+    for target in ("sine", "cone"):  # a servo file's [target] kinds
+        assert target in proc.stdout.split("servo targets")[1].split(), target
     assert "small.toml" in proc.stdout
 
 

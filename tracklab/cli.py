@@ -92,6 +92,7 @@ def cmd_run(args) -> int:
 
 def cmd_list(args) -> int:
     from tracklab.experiments.airborne import TRACKERS
+    from tracklab.experiments.servo import TARGET_KINDS
     from tracklab.filters.registry import KINDS
     from tracklab.scenarios import SCENARIO_KINDS
     from tracklab.sensors import SENSOR_KINDS
@@ -123,6 +124,9 @@ def cmd_list(args) -> int:
     for k, desc in TRACKERS.items():
         print(f"  {k:<16} {desc}")
     print("servo modes ([[case]] of a [servo] file, paper 003): double_loop, velocity_lag, on_axis")
+    print("servo targets ([target] of a [servo] file):")
+    for k, desc in TARGET_KINDS.items():
+        print(f"  {k:<16} {desc}")
     return 0
 
 

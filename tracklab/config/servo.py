@@ -54,8 +54,8 @@ from pathlib import Path
 from tracklab.config.fields import (MAX_RUN_STEPS, Section, auto_runs, check_sections, experiment_header,
                                     level_and_baseline)
 from tracklab.errors import ConfigError
-from tracklab.experiments.servo import (CAMERA_LOOPS, ESTIMATOR_KINDS, MAX_TICKS, TICK_RANGE, Case, EstimatorConfig,
-                                        ServoExperiment)
+from tracklab.experiments.servo import (CAMERA_LOOPS, ESTIMATOR_KINDS, MAX_TICKS, TARGET_KINDS, TICK_RANGE, Case,
+                                        EstimatorConfig, ServoExperiment)
 from tracklab.servo.loops import MODES, AzimuthAxis
 
 
@@ -106,7 +106,7 @@ def parse_servo(f: Path, raw: dict) -> ServoExperiment:
     accel_ff = sv.number("accel_ff", 0.0, nonneg=True)
     sv.check_unknown()
     tg = Section(f, "target", raw["target"])
-    kind = tg.string("kind", required=True, choices=("sine", "cone"))
+    kind = tg.string("kind", required=True, choices=tuple(TARGET_KINDS))
     if kind == "sine":
         target = {"kind": kind, "amplitude": tg.number("amplitude", 83.33, positive=True),
                   "omega": tg.number("omega", 0.6, positive=True)}

@@ -16,6 +16,10 @@ import numpy as np
 
 
 ESTIMATOR_KINDS = ("kf", "dekf")
+TARGET_KINDS = {  # [target] kind -> its fields (paper 003: the sine test and the dynamic-target rig)
+    "sine": "amplitude (deg), omega (rad/s)",
+    "cone": "half_angle, axis_elevation (deg), period (s): a point circling a cone",
+}
 MAX_TICKS = 10**7  # servo ticks per run (frames × frame_ticks)
 # the correctors are the paper's continuous designs (poles up to 400 rad/s), discretised at
 # the tick: the tick is kept near the paper's 1 ms
