@@ -9,9 +9,9 @@ script's block gets the block right under its title, and keeps the rest below it
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
+
+from tracklab.output import write_text_atomically
 
 
 def markers(script: str) -> tuple[str, str]:
@@ -26,13 +26,14 @@ def merged(old: str, text: str, script: str, keep_earlier: bool = False) -> str:
     run = f"{begin}\n{block.strip()}\n{end}"
     if not old.strip():
         return f"{title}\n\n{run}\n"
-    if not keep_earlier and begin in old and end in old[old.index(begin):]:
-        i = old.index(begin)
-        j = old.index(end, i) + len(end)
-        return old[:i] + run + old[j:]
+    i = old.find(begin)
+    j = old.find(end, i) if i >= 0 else -1
+    if not keep_earlier and j >= 0:
+        return old[:i] + run + old[j + len(end):]
     first, _, rest = old.partition("\n")
     if first.startswith("# "):
-        return f"{first}\n\n{run}\n\n{rest.lstrip(chr(10))}"
+        rest = rest.lstrip("\n")
+        return f"{first}\n\n{run}\n\n{rest}"
     return f"{title}\n\n{run}\n\n{old}"
 
 
@@ -40,11 +41,4 @@ def write_run(path, text: str, script: str, keep_earlier: bool = False) -> None:
     """Write ``text`` into ``path`` as ``script``'s run (see ``merged``), atomically."""
     path = Path(path)
     old = path.read_text() if path.exists() else ""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(merged(old, text, script, keep_earlier))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_text_atomically(path, merged(old, text, script, keep_earlier))

@@ -109,7 +109,7 @@ def check_sweep(exp, axes: list[Axis], runs=None, limit=None):
     for a in axes:
         if a.path is None and not _scales(exp, a.name):
             raise ConfigError(exp.path, "--grid", a.name, f"no filter of this experiment has the parameter {a.name!r}")
-    if any(getattr(e, "train_steps", 0) > 0 for e in getattr(exp, "estimators", ())):
+    if getattr(exp, "trained_first", list)():
         raise ConfigError(exp.path, "--grid", " ".join(names), "an estimator trained before its run (train_steps > 0) "
                           "cannot be swept: set train_steps = 0, or sweep the trained weights through the Python API")
     resolve(exp, axes)

@@ -311,10 +311,9 @@ class ServoExperiment:
         from tracklab.servo.world import world
 
         training, trained = {}, {}
-        for e in self.estimators:
-            if e.kind == "dekf" and e.train_steps > 0:
-                est, training[e.label] = self.train(e, self.build_estimator(e), progress)
-                trained[e.label] = est.params
+        for e in self.trained_first():
+            est, training[e.label] = self.train(e, self.build_estimator(e), progress)
+            trained[e.label] = est.params
         structure = self.structure(chunk, runs)
         max_runs = runs
         target = target_precision or self.target_precision
@@ -344,10 +343,14 @@ class ServoExperiment:
                        "reached": precision_reached(out.samples, target, self.level, headline)}}
              if target is not None else {})
 
+    def trained_first(self) -> list[EstimatorConfig]:
+        """The estimators a run trains before its Monte-Carlo runs (a DEKF with ``train_steps``)."""
+        return [e for e in self.estimators if e.kind == "dekf" and e.train_steps > 0]
+
     def before_runs(self) -> list[str]:
-        """What a run does before its Monte-Carlo runs, a line each: the DEKFs it trains first."""
+        """What a run does before its Monte-Carlo runs, a line each."""
         return [f"{e.label}: training w0 and λ first ({e.train_steps} Adam steps of {e.train_runs} runs each)"
-                for e in self.estimators if e.kind == "dekf" and e.train_steps > 0]
+                for e in self.trained_first()]
 
     def train(self, cfg: EstimatorConfig, est, progress=None):
         """Train a DEKF estimator's initial weights and λ on the rate it feeds forward; held-out evaluation."""
