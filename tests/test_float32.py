@@ -68,7 +68,7 @@ def _at_most(path, steps, tmp, labels=None):
     fast), with only the filters ``labels`` (all if None)."""
     import tomllib
 
-    from tracklab.config.writing import dump_toml
+    import tomlkit
 
     raw = tomllib.loads(path.read_text())
     if raw["experiment"]["steps"] <= steps and labels is None:
@@ -86,7 +86,7 @@ def _at_most(path, steps, tmp, labels=None):
     for module in path.parent.glob("*.py"):  # a filter of one's own the file names (kind = "module:factory")
         shutil.copy(module, tmp)
     out = tmp / f"{path.stem}.toml"
-    out.write_text(dump_toml(raw))
+    out.write_text(tomlkit.dumps(raw))
     return load_experiment(out)
 
 

@@ -100,13 +100,3 @@ def test_mount_frame_angles_and_rates():
     assert abs(a[:, 2].max() - 80.0) < 1e-3 and abs(dt * np.argmax(a[:, 2]) - 15.0) < dt
     fd = (a[2:, [0, 2]] - a[:-2, [0, 2]]) / (2 * dt)
     np.testing.assert_allclose(a[1:-1, [1, 3]], fd, rtol=1e-3, atol=1e-6 * np.abs(a[:, 1]).max())
-
-
-def test_named_windows_survive_the_toml_writer():
-    """Tuned files are written with dump_toml: window names with spaces must stay valid TOML keys."""
-    import tomllib
-
-    from tracklab.config.writing import dump_toml
-
-    raw = tomllib.loads(textwrap.dedent(EXPERIMENT))
-    assert tomllib.loads(dump_toml(raw)) == raw

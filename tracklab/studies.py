@@ -50,9 +50,9 @@ def run_tune(exp, names, *, steps, lr, loss, runs_per_step, labels, out_toml: Pa
     from tracklab.runtime import writes
 
     from tracklab.config import load_experiment
-    from tracklab.config.writing import dump_toml
-    from tracklab.output import TUNED_HEADER, atomic_folder, check_tuned_file, write_text_atomically
-    from tracklab.tune import tune, tuned_document
+    from tracklab.config.writeback import tuned_text
+    from tracklab.output import atomic_folder, check_tuned_file, write_text_atomically
+    from tracklab.tune import tune
 
     written_to = out_toml  # as given (the log names it so, not as this machine resolves it)
     out_toml = check_tuned_file(out_toml, exp.path)
@@ -85,7 +85,7 @@ def run_tune(exp, names, *, steps, lr, loss, runs_per_step, labels, out_toml: Pa
     say(f"tuned in {res.wall_s:.1f} s ({len(res.history)} steps of {res.runs_per_step} runs)")
     if not writes():  # process 0 of a run of several processes writes
         return res
-    text = TUNED_HEADER + "\n" + dump_toml(tuned_document(exp, res, out_toml))
+    text = tuned_text(exp, res.params, out_toml)
 
     def verify(tmp):  # the file must be one `tracklab run` accepts, before it replaces anything
         try:

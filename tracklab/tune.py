@@ -56,10 +56,10 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from tracklab.filters.kind import FilterKind, WriteBack, constraint_of, positive
+from tracklab.config.writeback import write_back
+from tracklab.filters.kind import FilterKind, constraint_of, positive
 from tracklab.filters.registry import KINDS, tunes
 from tracklab.montecarlo import runner
-from tracklab.sensors import SENSOR_SIGMAS
 from tracklab.worlds import tracking
 from tracklab.pytree import named_leaves, with_leaves
 from tracklab.worlds.tracking import LOSSES, FilterSpec
@@ -107,11 +107,6 @@ def acceptable(kind: FilterKind, params: dict, names) -> str | None:
     return None
 
 
-def _write_back(exp, fc) -> WriteBack:
-    _, meas = exp.view(fc)
-    return WriteBack(fc.model, meas.kind, SENSOR_SIGMAS.get(meas.kind, ()))
-
-
 def unwritable(exp, chosen: dict) -> str | None:
     """Why the tuned values of ``chosen`` ({label: names}) could not be written back into the
     experiment file (None if they can): checked before tuning starts."""
@@ -133,7 +128,7 @@ def unwritable(exp, chosen: dict) -> str | None:
             if p.write is None:
                 return f"filter {fc.label!r}: {n} ({p.doc}) is tuned through the Python API; a file holds none"
             try:
-                p.write(copy.deepcopy(table), n, fc.params[n], _write_back(exp, fc))
+                p.write(copy.deepcopy(table), n, fc.params[n], write_back(exp, fc))
             except ValueError as e:
                 return f"filter {fc.label!r}: {e}"
     return None
@@ -464,39 +459,3 @@ def _tune(exp, names, *, steps, lr, loss, runs_per_step, eval_runs, seed, labels
     result.eval_tuned = evaluate(theta)
     result.wall_s = time.perf_counter() - t0
     return result
-
-
-def tuned_document(exp, result: TuneResult, out_path) -> dict:
-    """The experiment file with the tuned values written into its filters (each as its kind declares)."""
-    import copy
-    import os
-    from pathlib import Path
-
-    doc = copy.deepcopy(exp.raw)
-    doc.pop("study", None)  # the tuned file is a result: its studies stay with the original
-    doc["experiment"]["name"] = f"{exp.name}_tuned"
-    if hasattr(exp, "write_tuned"):  # airborne trackers, servo estimators
-        exp.write_tuned(doc, result.params)
-        return doc
-    out_dir = Path(out_path).resolve().parent
-    sc = doc.get("scenario", {})
-    if "path" in sc:  # keep the trajectory reachable from the new file's folder
-        sc["path"] = os.path.relpath(Path(exp.scenario.path), out_dir)
-    for fc, table in zip(exp.filters, doc["filter"]):
-        tuned = result.params.get(fc.label)
-        if not tuned:
-            continue
-        table["label"] = f"{fc.label}, tuned"
-        if isinstance(fc, FilterSpec):  # a factory's filter: under the keyword of that name
-            table.update({n: np.asarray(v, float).tolist() for n, v in tuned.items()})
-            continue
-        for name, p in KINDS[fc.kind].params.items():  # in the order the kind declares them
-            if name not in tuned:
-                continue
-            if p.write is None:
-                raise ValueError(f"filter {fc.label!r}: tuned {name} ({p.doc}) cannot be written into an experiment file")
-            try:
-                p.write(table, name, tuned[name], _write_back(exp, fc))
-            except ValueError as e:
-                raise ValueError(f"filter {fc.label!r}: {e}") from None
-    return doc

@@ -75,7 +75,7 @@ from pathlib import Path
 import numpy as np
 
 from tracklab.airborne.engagement import Engagement, nominal_range
-from tracklab.config.fields import (MAX_RUN_STEPS, WINDOW_NAME_RE, Section, auto_runs, check_sections,
+from tracklab.config.fields import (MAX_RUN_STEPS, WINDOW_NAME_RE, Section, auto_runs, check_sections, check_unique,
                                     experiment_header, level_and_baseline)
 from tracklab.errors import ConfigError
 from tracklab.experiments.airborne import MAX_TICKS, MRAD, TRACKER_KINDS, AirborneExperiment, TrackerConfig
@@ -180,13 +180,12 @@ def parse_airborne(f: Path, raw: dict) -> AirborneExperiment:
     tables = raw["tracker"]
     if not isinstance(tables, list) or not tables:
         raise ConfigError(f, "[[tracker]]", tables, "at least one [[tracker]] table is required")
-    trackers, labels = [], set()
+    trackers, labels, trimmed = [], set(), set()
     for i, table in enumerate(tables, start=1):
         ts = Section(f, f"tracker[{i}]", table)
         kind = ts.string("kind", required=True, choices=TRACKER_KINDS)
         label = ts.label("label", kind)
-        if label in labels:
-            raise ConfigError(f, f"tracker[{i}].label", label, "must be unique among the trackers")
+        check_unique(f, f"tracker[{i}].label", label, trimmed, "trackers")
         labels.add(label)
         if kind == "classical":
             ts.check_unknown()

@@ -1,8 +1,8 @@
 """Code of one's own named in an experiment file: ``kind = "package.module:factory"``.
 
 A ``[[filter]]``, ``[scenario]`` or ``[sensor]`` table whose kind has a colon names a
-callable: the module is imported from the experiment file's folder or the Python path,
-and the callable is called with a context (what the experiment fixes) and the table's
+callable: the module is imported from the experiment file's folder, the folders its
+``[experiment] pythonpath`` lists (relative to the file), or the Python path, and the callable is called with a context (what the experiment fixes) and the table's
 other keys as keyword arguments. Whatever goes wrong — the module cannot be imported,
 it has no such callable, the call raises, or what it returns is not what the table
 needs — is one ``ConfigError`` line (file, field, value, what went wrong), before
@@ -35,28 +35,29 @@ def is_factory(kind) -> bool:
     return isinstance(kind, str) and ":" in kind
 
 
-def load_factory(file, field: str, spec: str):
+def load_factory(file, field: str, spec: str, folders=()):
     """The callable ``spec`` ("package.module:name") names, imported with the experiment file's
-    folder first on the Python path."""
+    folder, then ``folders`` (absolute: the file's ``pythonpath``), first on the Python path."""
     if not FACTORY_RE.fullmatch(spec):
         raise ConfigError(file, field, spec, 'must be "package.module:factory" (a module path, a colon, a name)')
     module_name, _, attr = spec.partition(":")
-    folder = str(Path(file).resolve().parent) if file is not None and Path(str(file)).exists() else None
-    added = folder is not None and folder not in sys.path
-    if added:
-        sys.path.insert(0, folder)
+    own = str(Path(file).resolve().parent) if file is not None and Path(str(file)).exists() else None
+    searched = [d for d in dict.fromkeys(([own] if own else []) + [str(d) for d in folders])]
+    added = [d for d in searched if d not in sys.path]
+    sys.path[:0] = added
     try:
         module = importlib.import_module(module_name)
     except ModuleNotFoundError as e:
         if e.name and (module_name == e.name or module_name.startswith(e.name + ".")):
-            where = "the experiment file's folder or the Python path" if folder else "the Python path"
+            where = ("the experiment file's folder" + (", its pythonpath" if folders else "") + " or the Python path"
+                     if own else "the Python path")
             raise ConfigError(file, field, spec, f"module {module_name!r} is not found in {where}") from None
         raise ConfigError(file, field, spec, f"importing {module_name!r} failed: {first_line(e)}") from None
     except Exception as e:  # noqa: BLE001 - the user's module, any error
         raise ConfigError(file, field, spec, f"importing {module_name!r} failed: {first_line(e)}") from None
     finally:
-        if added:
-            sys.path.remove(folder)
+        for d in added:
+            sys.path.remove(d)
     obj = module
     for part in attr.split("."):
         if not hasattr(obj, part):
@@ -75,6 +76,25 @@ def call_factory(file, field: str, spec: str, factory, context, options: dict):
         raise ConfigError(file, field, spec, f"the factory raised {first_line(e)}") from None
 
 
-def build(file, field: str, spec: str, context, options: dict):
-    """Import the factory ``spec`` names and call it with ``context`` and ``options``."""
-    return call_factory(file, field, spec, load_factory(file, field, spec), context, options)
+def build(file, field: str, spec: str, context, options: dict, folders=()):
+    """Import the factory ``spec`` names (from the file's folder, then ``folders``) and call it with
+    ``context`` and ``options``."""
+    return call_factory(file, field, spec, load_factory(file, field, spec, folders), context, options)
+
+
+def python_path(file, value) -> tuple[Path, ...]:
+    """``[experiment] pythonpath``: folders (relative to the experiment file, or absolute) that plug-in
+    modules are imported from after the file's own folder; ConfigError for anything else."""
+    if value is None:
+        return ()
+    allowed = "must be a list of folders (relative to the experiment file) to import plug-in modules from"
+    if not isinstance(value, list) or any(not isinstance(v, str) or not v.strip() for v in value):
+        raise ConfigError(file, "experiment.pythonpath", value, allowed)
+    base = Path(file).resolve().parent
+    out = []
+    for v in value:
+        folder = (base / v).resolve()
+        if not folder.is_dir():
+            raise ConfigError(file, "experiment.pythonpath", v, f"is not a folder (from {base})")
+        out.append(folder)
+    return tuple(out)

@@ -105,6 +105,15 @@ class Section:
             raise self._err(k, self.table[k], f"unknown field (allowed here: {allowed})")
 
 
+def check_unique(f, field: str, label: str, seen: set, what: str):
+    """Refuse ``label`` if it equals one of ``seen`` once surrounding spaces are trimmed ("EKF" and
+    "EKF " read as one label in a table), else add it to ``seen``; ``what``: "filters", …"""
+    if label.strip() in seen:
+        raise ConfigError(f, field, label, f"must be unique among the {what} (labels differing only in surrounding "
+                          "spaces count as the same)")
+    seen.add(label.strip())
+
+
 def read_toml(path: Path):
     if not path.is_file():
         raise ConfigError(path, "file", str(path), "experiment file does not exist")

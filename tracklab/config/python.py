@@ -15,7 +15,7 @@ import dataclasses
 
 import numpy as np
 
-from tracklab.config.fields import MAX_RUN_STEPS, MAX_RUNS, NAME_RE
+from tracklab.config.fields import MAX_RUN_STEPS, MAX_RUNS, NAME_RE, check_unique
 from tracklab.config.tracking import _parse_filter, _pred_windows
 from tracklab.errors import ConfigError
 from tracklab.experiments.tracking import Experiment, FilterConfig
@@ -134,7 +134,7 @@ def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: in
             raise ConfigError(WHERE, f"prior.{k}", v, "pos_sigma, vel_sigma, acc_sigma: numbers > 0")
 
     default_q = float(np.asarray(getattr(getattr(scenario, "scenario", scenario), "accel_sigma", 1.0)))
-    entries, labels = [], set()
+    entries, labels, trimmed = [], set(), set()
     for i, fc in enumerate(filters or [], start=1):
         where = f"filters[{i - 1}]"
         if isinstance(fc, dict):
@@ -151,8 +151,7 @@ def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: in
         elif not isinstance(fc, FilterConfig):
             raise ConfigError(WHERE, where, type(fc).__name__, "must be a FilterSpec, a [[filter]] table as a dict, "
                               "or a FilterConfig of a loaded experiment")
-        if fc.label in labels:
-            raise ConfigError(WHERE, f"{where}.label", fc.label, "must be unique among the filters")
+        check_unique(WHERE, f"{where}.label", fc.label, trimmed, "filters")
         labels.add(fc.label)
         entries.append(fc)
     if not entries:

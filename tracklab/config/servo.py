@@ -51,7 +51,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from tracklab.config.fields import (MAX_RUN_STEPS, Section, auto_runs, check_sections, experiment_header,
+from tracklab.config.fields import (MAX_RUN_STEPS, Section, auto_runs, check_sections, check_unique, experiment_header,
                                     level_and_baseline)
 from tracklab.errors import ConfigError
 from tracklab.experiments.servo import (CAMERA_LOOPS, ESTIMATOR_KINDS, MAX_TICKS, TARGET_KINDS, TICK_RANGE, Case,
@@ -115,7 +115,7 @@ def parse_servo(f: Path, raw: dict) -> ServoExperiment:
                   "axis_elevation": tg.number("axis_elevation", 26.0, lo=0.0, hi=80.0),
                   "period": tg.number("period", 4.5, positive=True)}
     tg.check_unknown()
-    estimators, labels = [], set()
+    estimators, labels, trimmed = [], set(), set()
     tables = raw.get("estimator", [])
     if not isinstance(tables, list):
         raise ConfigError(f, "[[estimator]]", tables, "must be [[estimator]] tables")
@@ -123,8 +123,9 @@ def parse_servo(f: Path, raw: dict) -> ServoExperiment:
         es = Section(f, f"estimator[{i}]", table)
         ekind = es.string("kind", required=True, choices=ESTIMATOR_KINDS)
         label = es.label("label", ekind)
-        if label in labels or label == "perfect":
-            raise ConfigError(f, f"estimator[{i}].label", label, "must be unique (and not 'perfect')")
+        if label.strip() == "perfect":
+            raise ConfigError(f, f"estimator[{i}].label", label, "must not be 'perfect' (a case's ideal estimator)")
+        check_unique(f, f"estimator[{i}].label", label, trimmed, "estimators")
         labels.add(label)
         cfg = EstimatorConfig(label, ekind, es.number("q", 1.0, positive=True))
         if ekind == "dekf":
@@ -138,7 +139,7 @@ def parse_servo(f: Path, raw: dict) -> ServoExperiment:
                                   es.number("train_lr", 1e-3, positive=True), es.integer("train_runs", 8, lo=1, hi=100_000))
         es.check_unknown()
         estimators.append(cfg)
-    cases, case_labels = [], set()
+    cases, case_labels, case_trimmed = [], set(), set()
     tables = raw["case"]
     if not isinstance(tables, list) or not tables:
         raise ConfigError(f, "[[case]]", tables, "at least one [[case]] table is required")
@@ -151,8 +152,7 @@ def parse_servo(f: Path, raw: dict) -> ServoExperiment:
         if mode != "double_loop" and est is None:
             raise ConfigError(f, f"case[{i}].estimator", None, f"mode {mode} needs an estimator (or \"perfect\")")
         label = cs.label("label", mode if est is None else f"{mode}, {est}")
-        if label in case_labels:
-            raise ConfigError(f, f"case[{i}].label", label, "must be unique among the cases")
+        check_unique(f, f"case[{i}].label", label, case_trimmed, "cases")
         case_labels.add(label)
         cs.check_unknown()
         cases.append(Case(label, mode, est))

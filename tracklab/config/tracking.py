@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from tracklab.config.fields import (MAX_RUN_STEPS, MAX_RUNS, MAX_STEPS, NAME_RE, WINDOW_NAME_RE, Section, auto_runs,
-                                    check_sections, experiment_header, level_and_baseline)
+                                    check_sections, check_unique, experiment_header, level_and_baseline)
 from tracklab.config import factories
 from tracklab.config.factories import is_factory
 from tracklab.config.studies import parse_studies
@@ -62,7 +62,7 @@ def _parse_sensors(f, raw):
     return out
 
 
-def _build_sensors(f, parsed, dim, dt, steps):
+def _build_sensors(f, parsed, dim, dt, steps, folders=()):
     sensors, names = [], set()
     for where, sn, kind in parsed:
         name = sn.string("name", kind.rpartition(":")[2])  # default: the kind (a factory: its name)
@@ -72,7 +72,7 @@ def _build_sensors(f, parsed, dim, dt, steps):
             raise ConfigError(f, f"{where}.name", name, "must be unique among the sensors")
         names.add(name)
         if is_factory(kind):
-            sensors.append(_own_sensor(f, where, sn, kind, name, dim, dt, steps))
+            sensors.append(_own_sensor(f, where, sn, kind, name, dim, dt, steps, folders))
             continue
         if SENSOR_DIM.get(kind, dim) != dim:
             hint = " (set scenario.altitude for a 3-D crossing)" if SENSOR_DIM[kind] == 3 else " (remove scenario.altitude, or use a 3-D sensor)"
@@ -105,13 +105,13 @@ def _timing(f, where, sn, dt):
     return p_detect, period, offset
 
 
-def _own_sensor(f, where, sn, kind, name, dim, dt, steps):
+def _own_sensor(f, where, sn, kind, name, dim, dt, steps, folders=()):
     """A [sensor] whose kind names a factory: ``factory(Context(dt, steps, dim), **other keys)``
     returns a sensor (``tracklab.sensors.CustomSensor``, or a built-in ``Sensor``); the table's
     name, p_detect, period and offset apply to it."""
     p_detect, period, offset = _timing(f, where, sn, dt)
     options = {k: sn.get(k) for k in sn.table if k not in ("kind", "name", "p_detect", "period", "offset")}
-    sensor = factories.build(f, f"{where}.kind", kind, factories.Context(dt, steps, dim), options)
+    sensor = factories.build(f, f"{where}.kind", kind, factories.Context(dt, steps, dim), options, folders)
     if not isinstance(sensor, (Sensor, CustomSensor)):
         raise ConfigError(f, f"{where}.kind", kind, f"the factory returned {type(sensor).__name__}: expected a "
                           "tracklab.sensors.CustomSensor(h, R, angles=…) or Sensor")
@@ -126,11 +126,11 @@ def _own_sensor(f, where, sn, kind, name, dim, dt, steps):
     return sensor
 
 
-def _own_scenario(f, sc, kind, dt, steps, dim):
+def _own_scenario(f, sc, kind, dt, steps, dim, folders=()):
     """A [scenario] whose kind names a factory: ``factory(Context(dt, steps, dim), **other keys)``
     returns a scenario, or a function of a run's key giving its truth (steps + 1, 2·dim)."""
     options = {k: sc.get(k) for k in sc.table if k != "kind"}
-    made = factories.build(f, "scenario.kind", kind, factories.Context(dt, steps, dim), options)
+    made = factories.build(f, "scenario.kind", kind, factories.Context(dt, steps, dim), options, folders)
     if callable(made) and not hasattr(made, "simulate"):
         made = _generated(f, kind, made, dt, steps)
     if not hasattr(made, "simulate") or not hasattr(made, "dim"):
@@ -179,9 +179,10 @@ def _manoeuvre(f, sc, dt, steps, sensor_dim):
     dim = len(init) // 2
     if sensor_dim is not None and dim != sensor_dim:
         raise ConfigError(f, "scenario.initial", list(init), f"is {dim}-D: the sensors observe {sensor_dim}-D positions")
-    table = sc.get("segments", [])
-    if not isinstance(table, list):
-        raise ConfigError(f, "scenario.segments", table, "must be a list of tables {duration, turn_g, accel}")
+    table = sc.get("segments")
+    if not isinstance(table, list) or not table:
+        raise ConfigError(f, "scenario.segments", table, "must be a list of at least one table {duration, turn_g, "
+                          "accel} (a straight flight: kind = \"constant_velocity\")")
     segments = []
     for j, seg in enumerate(table, start=1):
         ss = Section(f, f"scenario.segments[{j}]", seg)
@@ -216,6 +217,7 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
     also = ex.get("also_runs", [])  # extra run counts `tracklab reproduce` writes, e.g. a paper's own
     if not isinstance(also, list) or any(isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= MAX_RUNS for v in also):
         raise ConfigError(f, "experiment.also_runs", also, f"must be a list of run counts in [1, {MAX_RUNS}]")
+    folders = factories.python_path(f, ex.get("pythonpath"))  # where plug-in modules are imported from
     ex.check_unknown()
 
     parsed_sensors = _parse_sensors(f, raw)
@@ -230,7 +232,7 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
         raise ConfigError(f, "scenario.kind", kind,
                           f"must be one of {', '.join(SCENARIO_KINDS)}, or \"package.module:factory\" (a truth of one's own)")
     if is_factory(kind):
-        scenario = _own_scenario(f, sc, kind, dt, steps, sensor_dim)
+        scenario = _own_scenario(f, sc, kind, dt, steps, sensor_dim, folders)
     elif kind == "manoeuvre":
         scenario = _manoeuvre(f, sc, dt, steps, sensor_dim)
     elif kind == "sine":
@@ -283,7 +285,7 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
             raise ConfigError(f, "experiment.steps", steps, f"the trajectory from start = {start} s holds at most {avail} steps of {dt} s")
     sc.check_unknown()
     dim = scenario.dim
-    suite = _build_sensors(f, parsed_sensors, dim, dt, steps)
+    suite = _build_sensors(f, parsed_sensors, dim, dt, steps, folders)
     mounts = [s.kind == "mount" for s in suite.sensors]
     if any(mounts):  # angle tracking: the truth in the mount frame, filters on [az, el] (deg)
         if not all(mounts):
@@ -303,12 +305,11 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
     flist = raw.get("filter")
     if not isinstance(flist, list) or not flist:
         raise ConfigError(f, "[[filter]]", flist, "at least one [[filter]] table is required")
-    filters, labels = [], set()
+    filters, labels, trimmed = [], set(), set()
     default_q = getattr(getattr(scenario, "scenario", scenario), "accel_sigma", 1.0)
     for i, table in enumerate(flist, start=1):
-        fc = _parse_filter(f, i, table, suite, dim, dt, default_q, scenario)
-        if fc.label in labels:
-            raise ConfigError(f, f"filter[{i}].label", fc.label, "must be unique among the filters")
+        fc = _parse_filter(f, i, table, suite, dim, dt, default_q, scenario, folders)
+        check_unique(f, f"filter[{i}].label", fc.label, trimmed, "filters")
         labels.add(fc.label)
         filters.append(fc)
 
@@ -381,14 +382,14 @@ def _seen(f, where, fs, suite, default=None):
     return tuple(dict.fromkeys(names))
 
 
-def _own_filter(f, i, fs, spec, suite, scenario):
+def _own_filter(f, i, fs, spec, suite, scenario, folders=()):
     """A [[filter]] whose kind names a factory: ``factory(FilterContext, **the table's other keys)``
     returns a ``Filter`` (its ``layout`` saying where position and velocity sit in its state)."""
     label = fs.label("label", spec.rpartition(":")[2])
     names = _seen(f, f"filter[{i}]", fs, suite)
     options = {k: fs.get(k) for k in fs.table if k not in ("kind", "label", "sensors")}
     context = filter_context(scenario, suite.subset(names))
-    flt = factories.build(f, f"filter[{i}].kind", spec, context, options)
+    flt = factories.build(f, f"filter[{i}].kind", spec, context, options, folders)
     if not isinstance(flt, Filter):
         raise ConfigError(f, f"filter[{i}].kind", spec, f"the factory returned {type(flt).__name__}: expected a "
                           "tracklab.filters.Filter(init, step, params)")
@@ -399,13 +400,13 @@ def _own_filter(f, i, fs, spec, suite, scenario):
     return own
 
 
-def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q, scenario=None) -> FilterConfig:
+def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q, scenario=None, folders=()) -> FilterConfig:
     """One [[filter]] table: its kind, label and what it sees (the sensors, a guide, a fusion), checked
     against the sensor kinds the kind accepts; then the kind's own fields (its declaration's ``read``)."""
     fs = Section(f, f"filter[{i}]", table)
     name = fs.string("kind", required=True)
     if is_factory(name):
-        return _own_filter(f, i, fs, name, suite, scenario)
+        return _own_filter(f, i, fs, name, suite, scenario, folders)
     if name not in KINDS:
         raise ConfigError(f, f"filter[{i}].kind", name,
                           f"must be one of {', '.join(KINDS)}, or \"package.module:factory\" (a filter of one's own)")

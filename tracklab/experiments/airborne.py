@@ -225,7 +225,6 @@ class AirborneExperiment:
         for table, tc in zip(doc["tracker"], self.trackers):
             if tc.label in values:
                 table.update({n: float(v) for n, v in values[tc.label].items()})
-                table["label"] = f"{tc.label}, tuned"
 
     def tune_memory_bytes(self, runs_per_step) -> float:
         """Reverse mode keeps every run's loop state (tracker, antenna, truth: ~200 values) per tick."""
