@@ -437,7 +437,7 @@ CASES = [
     case("study-tune-unknown-filter", edit(study=[{"kind": "tune", "params": ["q"], "filters": ["KF"], "out": "t"}]),
          "study[1].filters", "['KF']", "EKF"),
     case("study-tune-param-no-filter-has", edit(study=[{"kind": "tune", "params": ["rho"], "out": "t"}]),
-         "study[1].params", "['rho']", "no selected filter"),
+         "study[1].params", "['rho']", "parameters among q, r"),
     case("study-tune-zero-lr", edit(study=[{"kind": "tune", "params": ["q"], "lr": 0.0, "out": "t"}]), "study[1].lr",
          "0.0", "> 0"),
     case("study-sweep-bad-grid", edit(study=[{"kind": "sweep", "grid": ["q=1:0.1:3"], "out": "s"}]), "study[1].grid",

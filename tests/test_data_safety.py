@@ -494,14 +494,14 @@ def test_servo_latency_inside_the_margin_and_on_axis_are_accepted(tmp_path):
 
 
 @pytest.mark.parametrize("args, expect", [
-    (("sweep", "air.toml", "--grid", "lam=1:2:2"), "no filter of this experiment has the parameter 'lam'"),
+    (("sweep", "air.toml", "--grid", "lam=1:2:2"), "no filter of this experiment declares a scalable parameter 'lam'"),
     (("tune", "air.toml", "--params", "q"), "must name parameters among q_scale, r_scale, lam"),
     (("tune", "air.toml", "--params", "lam", "--loss", "mse_pos"), "must be one of pointing, los_rate"),
-    (("sweep", "servo.toml", "--grid", "servo.frames=100:200:2"), "changes what the program is compiled for"),
-    (("sweep", "servo.toml", "--grid", "q=1:2:2"), "no filter of this experiment has the parameter 'q'"),
+    (("sweep", "servo.toml", "--grid", "experiment.runs=2:4:2", "--runs", "3"), "give one of them"),
+    (("sweep", "servo.toml", "--grid", "q=1:2:2"), "no filter of this experiment declares a scalable parameter 'q'"),
     (("tune", "servo.toml", "--params", "q"), "no selected filter"),
-    (("sweep", "small.toml", "--grid", "rho=0.5:1:2"), "no filter of this experiment has the parameter 'rho'"),
-    (("tune", "small.toml", "--params", "rho"), "no selected filter"),
+    (("sweep", "small.toml", "--grid", "rho=0.5:1:2"), "no filter of this experiment declares a scalable parameter 'rho'"),
+    (("tune", "small.toml", "--params", "rho"), "must name parameters among q, r"),
     (("tune", "small.toml", "--params", "q", "--filters", "nope"), "--filters"),
     (("tune", "two.toml", "--params", "r", "--filters", "KF"), "several sensors"),
     (("run", "small.toml", "--max-memory", "2K"), "more than --max-memory"),

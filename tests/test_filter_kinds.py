@@ -17,7 +17,7 @@ from tracklab import cli
 from tracklab.config import load_experiment
 from tracklab.experiments.tracking import Experiment
 from tracklab.errors import ConfigError
-from tracklab.filters.kind import Constraint, Param
+from tracklab.parameters import Constraint, Param
 from tracklab.filters.registry import KINDS, SCALABLE, TUNABLE, declarations
 from tracklab.sensors import SENSOR_KINDS
 from tracklab.tune import decode, encode

@@ -12,7 +12,7 @@ from pathlib import Path
 import tracklab
 
 LAYERS = [
-    {"errors", "runtime", "pytree", "linalg", "random", "toml_fields", "memory", "output", "models", "sensors", "scenarios",
+    {"errors", "runtime", "pytree", "parameters", "linalg", "random", "toml_fields", "memory", "output", "models", "sensors", "scenarios",
      "metrics", "intervals", "montecarlo", "filters", "filtering"},
     {"worlds", "airborne", "servo"},
     {"report", "figures"},

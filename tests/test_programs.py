@@ -1,6 +1,6 @@
 """Compiled programs kept on disk (``montecarlo.programs``): a new process loads the program
 instead of tracing and compiling it, with the same statistics to the last bit; a filter of
-one's own is never kept; an unreadable file is compiled again; a program JAX loaded from its
+one's own is kept by what it compiles to; an unreadable file is compiled again; a program JAX loaded from its
 own cache is never kept."""
 
 import json
@@ -81,16 +81,45 @@ def test_a_program_kept_on_disk_gives_the_same_statistics_in_a_new_process(tmp_p
         assert doc[tracking] == first[tracking]
 
 
-def test_a_filter_of_ones_own_is_never_kept(tmp_path):
-    """A structure that holds a Python object of the user's (their filter's functions) has no
-    key: its code is not the library's, so a kept program could outlive an edit of it."""
+def test_a_filter_of_ones_own_is_kept_by_what_it_compiles_to(tmp_path):
+    """A filter of one's own is structure by its traced code (``program_key``): another value of a
+    number in its params is the same program, kept and found again; a number its factory bakes in
+    is another program (never a stale one); a filter that calls back into Python is never kept."""
+    import jax.numpy as jnp
+
+    import tracklab
+    from tracklab import Filter, FilterSpec, Out
+
+    def walker(scale):  # a random-walk filter on [x, ẋ, y, ẏ] with `scale` compiled in, `q` an input
+        def step(params, state, meas):
+            x, P = state
+            P = P + scale * params["q"] * jnp.eye(4)
+            return (x, P), Out(x, P)
+        return Filter(lambda params, prior: (prior.x, prior.P), step, {"q": jnp.asarray(1.0)})
+
     exp = load_experiment(Path(__file__).resolve().parents[1] / "experiments" / "own_filter.toml")
+
+    def structure(flt):
+        e = tracklab.experiment(exp.scenario, exp.sensor, [FilterSpec("walker", flt)], runs=2)
+        return e, e.structure(chunk=2)
+
+    e, base = structure(walker(1.0))
+    _, again = structure(walker(1.0)._replace(params={"q": jnp.asarray(5.0)}))
+    _, other = structure(walker(2.0))
+    assert base == again and hash(base) == hash(again) and base != other
+
+    def callback(params, state, meas):
+        x, P = state
+        return (x, P), Out(jax.pure_callback(lambda v: v, jax.ShapeDtypeStruct((4,), jnp.float64), x), P)
+
+    _, called = structure(walker(1.0)._replace(step=callback))
     session = programs.folder()
     programs.keep_in(tmp_path / "programs")
     try:
-        structure, params = exp.structure(), exp.params()
-        assert programs.key(structure, jax.tree_util.tree_structure(params), (), 4, "float64", None) is None
-        exp.monte_carlo(runs=2, chunk=2)
-        assert not list((tmp_path / "programs").glob("*" + programs.SUFFIX))
+        treedef = jax.tree_util.tree_structure(e.params())
+        assert programs.key(called, treedef, (), 2, "float64", None) is None
+        assert programs.key(base, treedef, (), 2, "float64", None) is not None
+        e.monte_carlo(runs=2, chunk=2)
+        assert len(list((tmp_path / "programs").glob("*" + programs.SUFFIX))) == 1
     finally:
         programs.keep_in(session)

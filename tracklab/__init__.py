@@ -12,7 +12,9 @@ from tracklab.experiments.recorded import evaluate
 from tracklab.filtering import FilterResult, run_filter
 from tracklab.filters.context import FilterContext, SensorModel, filter_context
 from tracklab.filters.core import Filter, Meas, Out, Prior
+from tracklab.filters.factory import declare
 from tracklab.models import Layout
+from tracklab.parameters import Param
 from tracklab.runtime import configure
 from tracklab.tune import tune
 from tracklab.worlds.tracking import FilterSpec, MonteCarloResult, monte_carlo
@@ -20,7 +22,7 @@ from tracklab.worlds.tracking import FilterSpec, MonteCarloResult, monte_carlo
 __version__ = "0.1.0"
 
 __all__ = [
-    "Filter", "FilterContext", "FilterResult", "FilterSpec", "Layout", "Meas", "MonteCarloResult", "Out", "Prior",
-    "SensorModel", "__version__", "configure", "evaluate", "experiment", "filter_context", "filters", "load_experiment", "models",
+    "Filter", "FilterContext", "FilterResult", "FilterSpec", "Layout", "Meas", "MonteCarloResult", "Out", "Param", "Prior",
+    "SensorModel", "__version__", "configure", "declare", "evaluate", "experiment", "filter_context", "filters", "load_experiment", "models",
     "monte_carlo", "run_filter", "scenarios", "sensors", "tune",
 ]

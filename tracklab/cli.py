@@ -91,6 +91,8 @@ def cmd_run(args) -> int:
 
 
 def cmd_list(args) -> int:
+    from tracklab.config.factories import kinds_of_ones_own
+    from tracklab.filters.factory import declared
     from tracklab.experiments.airborne import TRACKERS
     from tracklab.experiments.servo import TARGET_KINDS
     from tracklab.filters.registry import KINDS
@@ -104,6 +106,13 @@ def cmd_list(args) -> int:
     files = sorted(folder.glob("*.toml"))
     for p in files:
         print(f"  {p}")
+        for field, spec, factory in kinds_of_ones_own(p):  # the numbers a kind of one's own declares
+            if isinstance(factory, ConfigError):
+                print(f"  {'':<4}{spec} ({field}): {factory.allowed}")
+                continue
+            params = declared(factory)
+            shown = ", ".join(q.describe(n) for n, q in params.items()) if params else "declares no numbers"
+            print(f"  {'':<4}{spec} ({field}): {shown}")
     if not files:
         print("  (none)")
     print("filter kinds ([[filter]] of a file; parameters [unit] = default):")
@@ -140,12 +149,13 @@ def cmd_tune(args) -> int:
 
     exp = load_experiment(args.experiment)
     names = [n.strip() for n in args.params.split(",") if n.strip()]
-    closed = hasattr(exp, "tune_names")  # an airborne or servo file
-    tunable = exp.tune_names if closed else TUNABLE
-    bad = [n for n in names if n not in tunable]
+    closed = hasattr(exp, "tune_losses")  # an airborne or servo file
+    bad = [n for n in names if n not in exp.tune_names]
     if not names or bad:
-        raise ConfigError(args.experiment, "--params", args.params, f"must name parameters among {', '.join(tunable)}")
-    unfiled = None if closed else next((n for n in names if all(p.write is None for p in declarations(n))), None)
+        raise ConfigError(args.experiment, "--params", args.params, f"must name parameters among "
+                          f"{', '.join(exp.tune_names) or '(none: no filter here declares a tunable number)'}")
+    unfiled = None if closed else next((n for n in names if all(p.write is None for p in declarations(n))
+                                        and n in TUNABLE), None)
     if unfiled:
         raise ConfigError(args.experiment, "--params", args.params, f"{unfiled} ({declarations(unfiled)[0].doc}) is tuned "
                           "through the Python API, tracklab.tune.tune; a file holds none")
@@ -174,7 +184,7 @@ def cmd_sweep(args) -> int:
     from tracklab.config import MAX_RUNS, load_experiment
     from tracklab.output import check_results_folder
     from tracklab.config.paths import parse_grid
-    from tracklab.sweep import grid_points, sweep, write_sweep
+    from tracklab.sweep import grid_points, runs_text, sweep, write_sweep
 
     exp = load_experiment(args.experiment)
     axes = []
@@ -193,11 +203,12 @@ def cmd_sweep(args) -> int:
         if writes() and (sys.stderr.isatty() or done == total):
             print(f"\r{exp.name} sweep: {done}/{total} runs (all grid points)", end="\n" if done == total else "", file=sys.stderr, flush=True)
 
-    doc = sweep(exp, axes, runs=args.runs, progress=progress, max_memory=args.max_memory)  # checks grid and memory first
+    doc = sweep(exp, axes, runs=args.runs, progress=progress, max_memory=args.max_memory,  # checks grid and memory first
+                log=lambda line: writes() and print(f"{exp.name} sweep: {line}", file=sys.stderr, flush=True))
     if not writes():  # process 0 of a multi-process run writes and prints
         return 0
     n = grid_points(axes)
-    print(f"# {exp.name}: {n} grid points x {doc['runs']} runs, {doc['wall_s']:.1f} s wall, "
+    print(f"# {exp.name}: {n} grid points x {runs_text(doc['runs'])} runs, {doc['wall_s']:.1f} s wall, "
           f"{doc['compile_s']:.1f} s of it compiling or loading the program")
     write_sweep(exp, doc, out, figures=not args.no_figures)
     print((out / "table.md").read_text(), end="")

@@ -24,8 +24,9 @@ def check_tune(exp, names, labels, out_toml, runs_per_step=None, max_memory=None
     if not chosen:
         from tracklab.worlds.tracking import FilterSpec
 
-        own = [fc.label for fc in getattr(exp, "filters", []) if isinstance(fc, FilterSpec)]
-        hint = f" (filters of one's own, {', '.join(own)}, are tuned from Python: tracklab.tune)" if own else ""
+        own = [fc.label for fc in getattr(exp, "filters", []) if isinstance(fc, FilterSpec) and not fc.declared]
+        hint = (f" (filters of one's own whose factory declares no numbers, {', '.join(own)}, are tuned from Python: "
+                "tracklab.tune, or declare them: tracklab.declare)" if own else "")
         raise ConfigError(exp.path, field, ",".join(names), f"no selected filter has any of these parameters{hint}")
     why = unwritable(exp, chosen)
     if why:
@@ -173,7 +174,7 @@ def run_study(exp, study, results_dir, quick=False, log=print, figures=True):
     ``figures``: with its PNG figures."""
     from tracklab.config import load_experiment
     from tracklab.config.paths import parse_grid
-    from tracklab.sweep import sweep, write_sweep
+    from tracklab.sweep import runs_text, sweep, write_sweep
 
     base = Path(results_dir) / study.out
     if study.kind == "tune":
@@ -192,5 +193,5 @@ def run_study(exp, study, results_dir, quick=False, log=print, figures=True):
         axes = [type(a)(a.name, a.values[[0, -1]] if len(a.values) > 1 else a.values) for a in axes]
     doc = sweep(exp, axes, runs=4 if quick else study.runs)
     write_sweep(exp, doc, base, figures=figures)
-    log(f"        sweep: {math.prod(len(a.values) for a in axes)} points x {doc['runs']} runs, {doc['wall_s']:.1f} s")
+    log(f"        sweep: {math.prod(len(a.values) for a in axes)} points x {runs_text(doc['runs'])} runs, {doc['wall_s']:.1f} s")
     return [base]

@@ -36,41 +36,24 @@ import numpy as np
 from tracklab.config import parse_experiment
 from tracklab.config.paths import Axis, set_value, table_of
 from tracklab.errors import ConfigError
-from tracklab.filters.registry import scales
 from tracklab.montecarlo import runner
 from tracklab.output import atomic_folder
 from tracklab.intervals import with_half_width
 from tracklab.report import md_cell, write_json
 
-def resolve(exp, axes: list[Axis]):
-    """Check every PATH axis against the file: it names a number (present, or one the file may
-    give), and the file is valid at the grid's ends. ConfigError (one line) otherwise."""
-    for a in axes:
-        if a.path is None:
-            continue
-        try:
-            table = table_of(copy.deepcopy(exp.raw), a.path, create=True)
-        except ValueError as e:
-            raise ConfigError(exp.path, "--grid", a.name, str(e)) from None
-        v = table.get(a.path[2])
-        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))):
-            kind = type(v).__name__.replace("str", "a string").replace("list", "a list").replace("dict", "a table")
-            raise ConfigError(exp.path, "--grid", a.name, f"is not a number in the file (it is {kind}): only numbers "
-                              "can be swept")
-    for end in ({a.name: a.values[0] for a in axes}, {a.name: a.values[-1] for a in axes}):
-        raw = copy.deepcopy(exp.raw)
-        for a in axes:
-            if a.path is not None:
-                set_value(raw, a.path, end[a.name])
-        try:
-            point = parse_experiment(exp.path, raw)
-        except ConfigError as e:
-            what = ", ".join(f"{a.name} = {end[a.name]:g}" for a in axes if a.path is not None)
-            raise ConfigError(exp.path, "--grid", what, f"gives an invalid file: {e.field} = {e.value!r}: {e.allowed}") from None
-        if point.structure() != exp.structure():
-            raise ConfigError(exp.path, "--grid", ", ".join(a.name for a in axes if a.path),
-                              "changes what the program is compiled for (a step count, a kind, the report "
-                              "timing), not just a number: run the values separately")
+def _path_of(exp, a: Axis):
+    """The file's value at a PATH axis (None when the file leaves it to its default); ConfigError
+    in one line for a PATH that names no number of the file."""
+    try:
+        table = table_of(copy.deepcopy(exp.raw), a.path, create=True)
+    except ValueError as e:
+        raise ConfigError(exp.path, "--grid", a.name, str(e)) from None
+    v = table.get(a.path[2])
+    if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))):
+        kind = type(v).__name__.replace("str", "a string").replace("list", "a list").replace("dict", "a table")
+        raise ConfigError(exp.path, "--grid", a.name, f"is not a number in the file (it is {kind}): only numbers "
+                          "can be swept")
+    return v
 
 
 def grid_points(axes: list[Axis]) -> int:
@@ -98,9 +81,10 @@ def memory_bytes(exp, axes: list[Axis], runs=None) -> float:
 
 
 def check_sweep(exp, axes: list[Axis], runs=None, limit=None):
-    """Refuse (ConfigError, one line) a grid naming a parameter nothing has, a PATH that names no
-    number or one that changes the program, an estimator trained before its run, or a grid too
-    large to hold."""
+    """Refuse (ConfigError, one line) what a sweep cannot mean: an axis named twice, a scale factor
+    of a parameter no filter has, a PATH that names no number, ``--runs`` beside an axis of the
+    runs, an estimator trained before its run, or a grid too large to hold. Each grid point is
+    checked as a file when the sweep reads it (``points``)."""
     from tracklab.memory import check
 
     names = [a.name for a in axes]
@@ -108,26 +92,36 @@ def check_sweep(exp, axes: list[Axis], runs=None, limit=None):
         raise ConfigError(exp.path, "--grid", " ".join(names), "each parameter may appear once")
     for a in axes:
         if a.path is None and not _scales(exp, a.name):
-            raise ConfigError(exp.path, "--grid", a.name, f"no filter of this experiment has the parameter {a.name!r}")
+            raise ConfigError(exp.path, "--grid", a.name, f"no filter of this experiment declares a scalable "
+                              f"parameter {a.name!r} (scalable here: {', '.join(_scalable(exp)) or 'none'})")
+        if a.path is not None:
+            _path_of(exp, a)
+        if a.path == ("experiment", None, "runs") and runs is not None:
+            raise ConfigError(exp.path, "--runs", runs, f"the grid sets each point's runs ({a.name}): give one of them")
     if getattr(exp, "trained_first", list)():
         raise ConfigError(exp.path, "--grid", " ".join(names), "an estimator trained before its run (train_steps > 0) "
                           "cannot be swept: set train_steps = 0, or sweep the trained weights through the Python API")
-    resolve(exp, axes)
     check(exp.path, memory_bytes(exp, axes, runs), limit, f"a sweep of {grid_points(axes):.3g} grid points",
           "fewer grid points (N in NAME=LO:HI:N), or fewer experiment.steps")
 
 
+def _scalable(exp) -> list[str]:
+    """The parameter names a scale-factor axis may name in this experiment."""
+    if hasattr(exp, "filters"):
+        return list(dict.fromkeys(n for fc in exp.filters for n, p in exp.declared(fc).items() if p.sweep))
+    if hasattr(exp, "trackers"):
+        return ["q", "r"] if any(t.kind != "classical" for t in exp.trackers) else []
+    return ["q", "r"] if getattr(exp, "estimators", ()) else []
+
+
 def _scales(exp, name) -> bool:
     """Whether a scale-factor axis ``name`` scales something in this experiment."""
-    if hasattr(exp, "filters"):
-        return any(scales(fc.kind, fc.params, name) for fc in exp.filters)
-    if hasattr(exp, "trackers"):
-        return name in ("q", "r") and any(t.kind != "classical" for t in exp.trackers)
-    return name in ("q", "r") and bool(getattr(exp, "estimators", ()))
+    return name in _scalable(exp)
 
 
-def point_params(exp, axes: list[Axis], values):
-    """The params of one grid point: the file with the PATH values (validated), scale factors applied."""
+def point(exp, axes: list[Axis], values):
+    """One grid point: (the file with the PATH values set, validated as a file is; its params, scale
+    factors applied). ConfigError in one line naming the point for a value the file refuses."""
     raw, factors = None, {}
     for a, v in zip(axes, values):
         if a.path is None:
@@ -135,43 +129,100 @@ def point_params(exp, axes: list[Axis], values):
         else:
             raw = raw if raw is not None else copy.deepcopy(exp.raw)
             set_value(raw, a.path, v)
-    point = exp if raw is None else parse_experiment(exp.path, raw)
-    params = point.params()
-    return exp.scaled(params, factors) if factors else params
+    if raw is None:
+        at = exp
+    else:
+        try:
+            at = parse_experiment(exp.path, raw)
+        except ConfigError as e:
+            what = ", ".join(f"{a.name} = {v:g}" for a, v in zip(axes, values) if a.path is not None)
+            raise ConfigError(exp.path, "--grid", what, f"gives an invalid file: {e.field} = {e.value!r}: {e.allowed}") from None
+    params = at.params()
+    return at, (at.scaled(params, factors) if factors else params)
 
 
-def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=None, progress=None, max_memory=None):
+def _shape(params):
+    leaves, treedef = jax.tree_util.tree_flatten(params)
+    return treedef, tuple((np.shape(a), np.asarray(a).dtype.name) for a in leaves)
+
+
+def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=None, progress=None, max_memory=None,
+          log=None):
     """Statistics of every filter at every grid point: {"points": [{"values", "stats"}], ...}.
 
-    The grid points of a block are parameter sets stacked along a leading axis of the params,
-    run by one compiled program on the same runs (the runner's ``points``)."""
+    Each point is the file with its values (``point``), run as ``tracklab run`` would run it:
+    its own runs, seed, precision, report level and baseline (``runs``: every point's runs
+    instead). Points whose programs are alike — the same structure, params of the same shapes,
+    the same runs and seed — are one program: their parameter sets stacked along a leading axis
+    and run on the same runs (the runner's ``points``), a block at a time. A value that changes
+    the program (a step count, a kind, a number a filter of one's own compiles in) makes the
+    grid several programs, one per value; ``log`` is told which axes do."""
     check_sweep(exp, axes, runs, max_memory)
-    runs = runs or exp.runs
-    seed = exp.seed if seed is None else seed
-    points = list(itertools.product(*[a.values for a in axes]))
+    values = list(itertools.product(*[a.values for a in axes]))
     names = [a.name for a in axes]
-    P = len(points)
-    chunk, block = _call_shape(exp, P, runs, chunk, block_points)
-    structure = exp.structure(chunk, runs * block)  # a block's points run on the same runs, in one program
-    world = exp.world(structure)
-    n_blocks = -(-P // block)
-    stats, compile_s = [], 0.0
+    P = len(values)
+    made = [point(exp, axes, v) for v in values]  # every point checked before anything runs
+    most = max(int(runs or at.runs) for at, _ in made)  # one chunk size for any runs a point asks
+    groups: dict = {}
+    for j, (at, params) in enumerate(made):
+        c, block = _call_shape(at, P, most, chunk, block_points)
+        program = (at.structure(c, most * block), _shape(params), at.precision, c, block)
+        groups.setdefault((program, int(runs or at.runs), at.seed if seed is None else seed), []).append(j)
+    keys = list(groups)
+    programs = {k[0] for k in keys}
+    of = _group_of(groups, P)
+    structural = [a.name for i, a in enumerate(axes) if _changes(values, i, [k[0] for k in of])]
+    separate = [a.name for i, a in enumerate(axes) if a.name not in structural and _changes(values, i, of)]
+    if log and structural:
+        log(f"{', '.join(structural)} {'changes' if len(structural) == 1 else 'change'} what is compiled: "
+            f"{len(programs)} programs for the {P} grid points, one per value")
+    if log and separate:
+        log(f"{', '.join(separate)}: each value runs on runs of its own ({len(keys)} calls of "
+            f"{'the same program' if len(programs) == 1 else 'the programs'})")
+    total = sum(k[1] * -(-len(groups[k]) // k[0][4]) for k in keys)
+    stats, compile_s, done = [None] * P, 0.0, 0
     t0 = time.perf_counter()
-    for bi, b0 in enumerate(range(0, P, block)):
-        sets = [point_params(exp, axes, v) for v in points[b0:b0 + block]]
-        n = len(sets)
-        sets += sets[-1:] * (block - n)  # the last block padded to the same program
-        stacked = jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *sets)
-        tick = (lambda done, total, bi=bi: progress(bi * runs + done, n_blocks * runs)) if progress else None
-        out = runner.run(world, stacked, runs, seed, precision=exp.precision, points=block, progress=tick)
-        compile_s += out.compile_s
-        stats += [exp.summarise(structure, runner.pick(stacked, j), runner.pick(out.sums, j), out, j) for j in range(n)]
+    for key in keys:
+        (structure, _, precision, c, block), n_runs, n_seed = key
+        world = made[groups[key][0]][0].world(structure)
+        members = groups[key]
+        for b0 in range(0, len(members), block):
+            js = members[b0:b0 + block]
+            sets = [made[j][1] for j in js]
+            sets += sets[-1:] * (block - len(sets))  # the last block padded to the same program
+            stacked = jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *sets)
+            tick = (lambda d, t, base=done: progress(base + d, total)) if progress else None
+            out = runner.run(world, stacked, n_runs, n_seed, precision=precision, points=block, progress=tick)
+            done += n_runs
+            compile_s += out.compile_s
+            for i, j in enumerate(js):
+                stats[j] = made[j][0].summarise(structure, runner.pick(stacked, i), runner.pick(out.sums, i), out, i)
     wall = time.perf_counter() - t0
-    doc_points = [{"values": dict(zip(names, map(float, v))), "stats": st} for v, st in zip(points, stats)]
+    doc_points = [{"values": dict(zip(names, map(float, v))), "stats": st} for v, st in zip(values, stats)]
+    each = sorted({int(runs or at.runs) for at, _ in made})
     return {"axes": {a.name: a.values.tolist() for a in axes}, "titles": {a.name: a.title for a in axes},
             "log": {a.name: a.log for a in axes}, "points": doc_points, "wall_s": wall, "compile_s": compile_s,
-            "runs": runs, "units": list(exp.units), "nees_dof": getattr(exp, "nees_dof", None),
+            "runs": each[0] if len(each) == 1 else each, "programs": len(programs), "structural": structural,
+            "units": list(exp.units), "nees_dof": getattr(exp, "nees_dof", None),
             "metrics": [[k, t.format(pos=exp.units[0])] for k, t in exp.sweep_metrics]}
+
+
+def _group_of(groups: dict, P: int) -> list:
+    """Each grid point's group key."""
+    out = [None] * P
+    for k, js in groups.items():
+        for j in js:
+            out[j] = k
+    return out
+
+
+def _changes(values, i, where) -> bool:
+    """Whether axis ``i`` alone puts grid points into different groups (``where``: each point's)."""
+    seen: dict = {}
+    for v, w in zip(values, where):
+        if seen.setdefault(v[:i] + v[i + 1:], w) != w:
+            return True
+    return False
 
 
 def write_sweep(exp, doc, out, figures=True):
@@ -215,8 +266,11 @@ def _write_sweep(exp, doc, tmp, figures):
                  + [with_half_width(v, hw, "{:.4g}") for v, hw in zip(r[len(names) + 1:-1], h)] + [str(int(r[-1]))])
         lines.append("| " + " | ".join(cells) + " |")
     level = doc["points"][0]["stats"].get("level", 0.95)
-    caption = (f"\n± : half-width of the {level:.0%} confidence interval over the {doc['runs']} runs at each point "
-               "(every point on the same runs).\n") if with_hw else ""
+    same = ("every point on the same runs" if doc.get("programs", 1) == 1 else
+            f"the grid ran as {doc['programs']} programs, {', '.join(doc.get('structural')) or 'runs or seed'} changing "
+            "what is compiled: the points of one program on the same runs")
+    caption = (f"\n± : half-width of the {level:.0%} confidence interval over the {runs_text(doc['runs'])} runs at each "
+               f"point ({same}).\n") if with_hw else ""
     (tmp / "table.md").write_text("\n".join(lines) + "\n" + caption)
     buf = io.StringIO()
     header_csv = header[:-1] + [f"{m}_hw" for m in with_hw] + header[-1:]
@@ -238,6 +292,11 @@ def _write_sweep(exp, doc, tmp, figures):
     if figures and len(names) <= 2:
         _plot(doc, names, labels, tmp)
     return rows
+
+
+def runs_text(runs) -> str:
+    """A sweep's runs per point: one number, or the range a runs axis spans."""
+    return str(runs) if isinstance(runs, int) else f"{min(runs)}–{max(runs)}"
 
 
 def _log_edges(values):

@@ -57,11 +57,13 @@ import numpy as np
 import optax
 
 from tracklab.config.writeback import write_back
-from tracklab.filters.kind import FilterKind, constraint_of, positive
-from tracklab.filters.registry import KINDS, tunes
+from tracklab.experiments.tracking import declared_of
+from tracklab.filters.kind import FilterKind
+from tracklab.filters.registry import KINDS
 from tracklab.montecarlo import runner
-from tracklab.worlds import tracking
+from tracklab.parameters import constraint_of, positive
 from tracklab.pytree import named_leaves, with_leaves
+from tracklab.worlds import tracking
 from tracklab.worlds.tracking import LOSSES, FilterSpec
 
 
@@ -117,7 +119,7 @@ def unwritable(exp, chosen: dict) -> str | None:
 
     for fc, table in zip(exp.filters, exp.raw["filter"]):
         if isinstance(fc, FilterSpec):  # a factory's filter: a tuned value goes back as the keyword of that name
-            missing = [n for n in chosen.get(fc.label, ()) if n not in table]
+            missing = [n for n in chosen.get(fc.label, ()) if n not in table and n not in fc.declared]
             if missing:
                 return (f"filter {fc.label!r}: {missing[0]} is no key of its [[filter]] table, so a tuned value "
                         f"has nowhere to go in the file (tune it from Python: tracklab.tune)")
@@ -212,7 +214,10 @@ def selection(exp, names, labels=None) -> dict:
     for fc in exp.filters:
         if labels and fc.label not in labels:
             continue
-        have = tuple(n for n in names if tunes(fc.kind, fc.params, n))
+        if isinstance(fc, FilterSpec):  # a factory's declared numbers, each in its constraint's coordinates
+            have = {n: fc.declared[n].constraint for n in names if n in fc.declared and fc.declared[n].tune}
+        else:
+            have = tuple(n for n in names if n in declared_of(fc) and declared_of(fc)[n].tune)
         if have:
             chosen[fc.label] = have
     return chosen
@@ -252,8 +257,8 @@ def _named_selection(exp, names: dict) -> dict:
         kind = KINDS[fc.kind]
         wanted = list(wanted)
         for n in wanted:
-            if not tunes(fc.kind, fc.params, n):
-                ok = [k for k in fc.params if tunes(fc.kind, fc.params, k)]
+            if not (n in declared_of(fc) and declared_of(fc)[n].tune):
+                ok = [k for k, p in declared_of(fc).items() if p.tune]
                 raise ValueError(f"tune: filter {label!r} ({kind.name}) has no tunable parameter {n!r} "
                                  f"(tunable: {', '.join(ok) or 'none'})")
         if wanted:
@@ -329,7 +334,8 @@ def objective(exp, names, loss="mse_pos", labels=None) -> Objective:
     def why_not(vals):
         for l, v in vals.items():
             if own(l):
-                why = next((f"{n} is not finite" for n, x in v.items() if not np.all(np.isfinite(np.asarray(x)))), None)
+                why = next((f"{n} leaves {chosen[l][n].bounds}" for n, x in v.items()
+                            if not np.all(np.isfinite(np.asarray(x))) or not chosen[l][n].contains({n: x})), None)
             else:
                 why = acceptable(KINDS[entries[l].kind], v, chosen[l])
             if why:

@@ -98,3 +98,34 @@ def python_path(file, value) -> tuple[Path, ...]:
             raise ConfigError(file, "experiment.pythonpath", v, f"is not a folder (from {base})")
         out.append(folder)
     return tuple(out)
+
+
+def kinds_of_ones_own(path) -> list[tuple[str, str, object]]:
+    """The kinds of one's own an experiment file names: (field, "module:factory", the factory, or the
+    ConfigError that loading it gives), for ``tracklab list``."""
+    import tomllib
+
+    try:
+        raw = tomllib.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return []
+    try:
+        folders = python_path(path, raw.get("experiment", {}).get("pythonpath")) if isinstance(raw.get("experiment"), dict) else ()
+    except ConfigError as e:
+        folders, error = (), e
+    else:
+        error = None
+    out = []
+    for section in ("scenario", "sensor", "filter"):
+        tables = raw.get(section, [])
+        tables = tables if isinstance(tables, list) else [tables]
+        for i, t in enumerate(tables, start=1):
+            kind = t.get("kind") if isinstance(t, dict) else None
+            if not is_factory(kind):
+                continue
+            field = f"{section}[{i}].kind" if section != "scenario" and len(tables) > 1 or section == "filter" else f"{section}.kind"
+            try:
+                out.append((field, kind, error or load_factory(path, field, kind, folders)))
+            except ConfigError as e:
+                out.append((field, kind, e))
+    return out

@@ -70,9 +70,10 @@ def parse_grid(spec: str) -> Axis:
     if spacing not in (None, "log"):
         raise ValueError(f"the spacing after N can only be 'log', not {spacing!r}")
     if "." not in key:
-        if key not in SCALABLE:
-            raise ValueError(f"NAME must be one of {', '.join(SCALABLE)}, or a PATH to a number of the file "
-                             f"(section.field, section[LABEL].field)")
+        if not key.isidentifier():
+            raise ValueError(f"NAME must be a filter parameter a scale factor may multiply ({', '.join(SCALABLE)}, or "
+                             "one a filter of one's own declares), or a PATH to a number of the file (section.field, "
+                             "section[LABEL].field)")
         if not 0 < lo <= hi:
             raise ValueError("scale factors need 0 < LO <= HI")
         return Axis(key, np.geomspace(lo, hi, n))
@@ -126,5 +127,5 @@ def table_of(raw: dict, path, create=False):
 def set_value(raw: dict, path, value):
     table = table_of(raw, path, create=True)
     old = table.get(path[2])
-    whole = isinstance(old, int) and not isinstance(old, bool) and float(value).is_integer()
-    table[path[2]] = int(value) if whole else float(value)  # an integer field stays an integer
+    whole = not isinstance(old, float) and float(value).is_integer()
+    table[path[2]] = int(value) if whole else float(value)  # a whole value is an integer, unless the file's is a float

@@ -148,6 +148,8 @@ def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: in
             why = fc.problem(scenario, suite)
             if why:
                 raise ConfigError(WHERE, where, fc.label, f"the filter {why}")
+            if fc.view is None and fc.code is None:  # structure by what it compiles to
+                fc = fc.with_code(scenario, suite)
         elif not isinstance(fc, FilterConfig):
             raise ConfigError(WHERE, where, type(fc).__name__, "must be a FilterSpec, a [[filter]] table as a dict, "
                               "or a FilterConfig of a loaded experiment")

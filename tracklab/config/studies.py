@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from tracklab.config.fields import MAX_RUNS, Section
 from tracklab.config.paths import parse_grid
 from tracklab.errors import ConfigError
-from tracklab.filters.registry import TUNABLE, scales, tunes
+from tracklab.experiments.tracking import declared_of
 from tracklab.worlds.tracking import LOSSES
 
 OUT_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*(/[A-Za-z0-9_][A-Za-z0-9_.-]*)*")
@@ -79,13 +79,14 @@ def parse_studies(f, tables, exp_filters) -> list:
         outs.add(out)
         if kind == "tune":
             params = st.get("params")
-            if not isinstance(params, list) or not params or any(p not in TUNABLE for p in params):
-                raise ConfigError(f, f"study[{i}].params", params, f"must be a list of parameters among {', '.join(TUNABLE)}")
+            tunable = list(dict.fromkeys(n for fc in exp_filters for n, p in declared_of(fc).items() if p.tune))
+            if not isinstance(params, list) or not params or any(p not in tunable for p in params):
+                raise ConfigError(f, f"study[{i}].params", params, f"must be a list of parameters among {', '.join(tunable)}")
             chosen = st.get("filters")
             if chosen is not None and (not isinstance(chosen, list) or not chosen or any(c not in labels for c in chosen)):
                 raise ConfigError(f, f"study[{i}].filters", chosen, f"must be a list of filter labels from: {', '.join(labels)}")
             pool = [labels[c] for c in chosen] if chosen else list(labels.values())
-            if not any(tunes(fc.kind, fc.params, p) for fc in pool for p in params):
+            if not any(p in declared_of(fc) and declared_of(fc)[p].tune for fc in pool for p in params):
                 raise ConfigError(f, f"study[{i}].params", params, "no selected filter has any of these parameters")
             loss = st.string("loss", "mse_pos", choices=tuple(LOSSES))
             lr = st.number("lr", 0.05, positive=True)
@@ -107,7 +108,8 @@ def parse_studies(f, tables, exp_filters) -> list:
                 raise ConfigError(f, f"study[{i}].grid", grid, "each parameter may appear once")
             # scale factors need a filter with the parameter; a PATH is checked against the file by the sweep
             missing = next((a.name for a in axes if a.path is None
-                            and not any(scales(fc.kind, fc.params, a.name) for fc in exp_filters)), None)
+                            and not any(a.name in declared_of(fc) and declared_of(fc)[a.name].sweep
+                                        for fc in exp_filters)), None)
             if missing:
                 raise ConfigError(f, f"study[{i}].grid", grid, f"no filter of this experiment has the parameter {missing!r}")
             study = SweepStudy(tuple(grid), st.integer("runs", None, lo=1, hi=MAX_RUNS), out)

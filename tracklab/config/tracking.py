@@ -22,6 +22,7 @@ from tracklab.experiments.tracking import Experiment, FilterConfig
 from tracklab.filters.fusion import view_of as _view
 from tracklab.filters.context import filter_context
 from tracklab.filters.core import Filter
+from tracklab.filters.factory import declared
 from tracklab.filters.kind import Entry
 from tracklab.filters.registry import KINDS
 from tracklab.metrics import REPORT_WINDOW
@@ -384,20 +385,34 @@ def _seen(f, where, fs, suite, default=None):
 
 def _own_filter(f, i, fs, spec, suite, scenario, folders=()):
     """A [[filter]] whose kind names a factory: ``factory(FilterContext, **the table's other keys)``
-    returns a ``Filter`` (its ``layout`` saying where position and velocity sit in its state)."""
+    returns a ``Filter`` (its ``layout`` saying where position and velocity sit in its state). The
+    numbers the factory declares (``tracklab.declare``) are checked against their declarations
+    here and go into the filter's params; the filter is then structure by what it compiles to
+    (``FilterSpec.with_code``)."""
     label = fs.label("label", spec.rpartition(":")[2])
     names = _seen(f, f"filter[{i}]", fs, suite)
     options = {k: fs.get(k) for k in fs.table if k not in ("kind", "label", "sensors")}
     context = filter_context(scenario, suite.subset(names))
-    flt = factories.build(f, f"filter[{i}].kind", spec, context, options, folders)
+    factory = factories.load_factory(f, f"filter[{i}].kind", spec, folders)
+    params = declared(factory)
+    for name in params:
+        try:
+            why = factory.problem(name, options[name] if name in options else params[name].value(context))
+        except Exception as e:  # noqa: BLE001 - the user's default, any error
+            why = f"has a default that fails: {first_line(e)}"
+        if why:
+            raise ConfigError(f, f"filter[{i}].{name}", options.get(name), why if name in options else
+                              f"its default from the factory's declaration {why}")
+    flt = factories.call_factory(f, f"filter[{i}].kind", spec, factory, context, options)
     if not isinstance(flt, Filter):
         raise ConfigError(f, f"filter[{i}].kind", spec, f"the factory returned {type(flt).__name__}: expected a "
                           "tracklab.filters.Filter(init, step, params)")
-    own = FilterSpec(label, flt, kind=spec, sensors=names if names != tuple(s.name for s in suite.sensors) else ())
+    own = FilterSpec(label, flt, kind=spec, sensors=names if names != tuple(s.name for s in suite.sensors) else (),
+                     declared=params)
     why = own.problem(scenario, suite)
     if why:
         raise ConfigError(f, f"filter[{i}].kind", spec, f"the factory's filter {why}")
-    return own
+    return own.with_code(scenario, suite)
 
 
 def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q, scenario=None, folders=()) -> FilterConfig:

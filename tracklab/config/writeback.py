@@ -30,6 +30,7 @@ import tomlkit
 from tracklab.config.factories import is_factory
 from tracklab.filters.kind import WriteBack
 from tracklab.filters.registry import KINDS
+from tracklab.parameters import write_value
 from tracklab.output import TUNED_HEADER
 from tracklab.sensors import SENSOR_SIGMAS
 from tracklab.worlds.tracking import FilterSpec
@@ -49,9 +50,9 @@ def write_filters(exp, doc, values: dict):
         tuned = values.get(fc.label)
         if not tuned:
             continue
-        if isinstance(fc, FilterSpec):  # a factory's filter: under the keyword of that name
+        if isinstance(fc, FilterSpec):  # a factory's filter: under the keyword of that name (as declared)
             for n, v in tuned.items():
-                table[n] = np.asarray(v, float).tolist()
+                (fc.declared[n].write if n in fc.declared else write_value)(table, n, v)
             continue
         for name, p in KINDS[fc.kind].params.items():  # in the order the kind declares them
             if name not in tuned:

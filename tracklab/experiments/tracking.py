@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from tracklab.filters.registry import scales
+from tracklab.filters.registry import KINDS
 from tracklab.sensors import SensorSuite
 
 
@@ -27,6 +27,14 @@ class FilterConfig:
     options: dict = field(default_factory=dict)
     sensors: tuple[str, ...] = ()  # which sensors the filter sees (all when empty)
     fusion: str | None = None  # "interpolate" | "none": laser + infrared fusion view
+
+
+def declared_of(fc) -> dict:
+    """The numbers a filter declares and has (name -> Param): those of its kind's that its table
+    gives (a built-in kind), or those its factory declares (``tracklab.declare``)."""
+    if isinstance(fc, FilterConfig):
+        return {n: p for n, p in KINDS[fc.kind].params.items() if n in fc.params}
+    return dict(fc.declared)
 
 
 @dataclass
@@ -62,7 +70,7 @@ class Experiment:
         d = self.dim
         return np.diag([self.prior["pos_sigma"] ** 2, self.prior["vel_sigma"] ** 2] * d)
 
-    def declared(self, fc):
+    def lane(self, fc):
         """A filter as the tracking world's structure holds it: a built-in [[filter]] as its
         declaration, a user's own ``FilterSpec`` as it is."""
         from tracklab.worlds.tracking import DeclaredFilter, hashable
@@ -73,7 +81,7 @@ class Experiment:
 
     def view(self, fc: FilterConfig):
         """(view function or None, measurement model) of what a filter sees."""
-        return self.declared(fc).sees(self.sensor)
+        return self.lane(fc).sees(self.sensor)
 
     def structure(self, chunk=None, runs=None):
         """What the compiled program depends on: the filters' kinds, models, options and views,
@@ -81,7 +89,7 @@ class Experiment:
         run count itself, nor any number."""
         from tracklab.worlds.tracking import TrackingStructure, default_chunk, windows_of
 
-        lanes = tuple(self.declared(fc) for fc in self.filters)
+        lanes = tuple(self.lane(fc) for fc in self.filters)
         chunk = int(chunk or self.chunk or default_chunk(self.scenario, self.sensor, runs=runs))
         return TrackingStructure(lanes, windows_of(self.pred_windows), chunk)
 
@@ -118,6 +126,13 @@ class Experiment:
             specs.append(FilterSpec(f.label, r.filter, f.kind, f.sensors, r.model, r.view, r.prior_extra_var))
         return specs
 
+    declared = staticmethod(lambda fc: declared_of(fc))
+
+    @property
+    def tune_names(self) -> tuple[str, ...]:
+        """What ``tracklab tune --params`` may name in this file: the tunable numbers its filters declare."""
+        return tuple(dict.fromkeys(n for fc in self.filters for n, p in declared_of(fc).items() if p.tune))
+
     @property
     def nees_dof(self) -> int:
         """The NEES's degrees of freedom (position and velocity): its consistent value."""
@@ -133,10 +148,14 @@ class Experiment:
         return tracking.world(structure)
 
     def scaled(self, params, factors: dict):
-        """``params`` with every filter's parameters named in ``factors`` multiplied by them."""
-        return params._replace(filters=[{k: (v * factors[k] if k in factors and scales(fc.kind, p, k) else v)
-                                         for k, v in p.items()} if isinstance(fc, FilterConfig) else p
-                                        for fc, p in zip(self.filters, params.filters)])
+        """``params`` with every filter's parameters named in ``factors`` multiplied by them (those its
+        kind, or its factory, declares scalable)."""
+        def scale(fc, p):
+            declared = declared_of(fc)
+            return {k: (v * factors[k] if k in factors and k in declared and declared[k].sweep else v)
+                    for k, v in p.items()} if isinstance(p, dict) else p
+
+        return params._replace(filters=[scale(fc, p) for fc, p in zip(self.filters, params.filters)])
 
     def summarise(self, structure, params, sums, out, point=None) -> dict:
         """The statistics document of one parameter set's sums (the runner's ``out``; ``point``:

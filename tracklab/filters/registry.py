@@ -33,15 +33,6 @@ def _names(chosen) -> tuple[str, ...]:
     return tuple(dict.fromkeys(n for k in KINDS.values() for n, p in k.params.items() if chosen(p)))
 
 
-def scales(kind: str, params: dict, name) -> bool:
-    """Whether a scale-factor sweep of ``name`` multiplies that parameter of a filter of ``kind``."""
-    return kind in KINDS and name in params and KINDS[kind].params[name].sweep
-
-
 TUNABLE = _names(lambda p: p.tune)  # what `tracklab tune --params` may name
 SCALABLE = _names(lambda p: p.sweep)  # what `tracklab sweep --grid` may scale
 
-
-def tunes(kind: str, params: dict, name) -> bool:
-    """Whether a filter of ``kind`` with ``params`` has the parameter ``name``, tunable."""
-    return kind in KINDS and name in params and KINDS[kind].params[name].tune

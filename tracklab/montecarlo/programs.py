@@ -10,10 +10,12 @@ of jax and jaxlib, the JAX settings that change a trace, ``XLA_FLAGS`` and the C
 the compiled executable (``jax.experimental.serialize_executable``).
 
 A program is stored only when
-  * all of it is the library's own code, whose source is part of the key: the structure's
-    text and the params' pytree structure name no Python object (a filter, truth or sensor of
-    one's own shows as ``<function … at 0x…>``: its code could change under the same name) and
-    no elided array, and every pytree node type is tracklab's, JAX's or a built-in one;
+  * all of it is known by the key: the library's own code, whose source is part of the key, and
+    filters of one's own, which the structure holds by what they trace to (their jaxprs and
+    constants: ``worlds.tracking.program_key``). The structure's text and the params' pytree
+    structure name no other Python object (a truth or sensor of one's own, a filter held by
+    identity, shows as ``<…>``: its code could change under the same name) and no elided
+    array, and every pytree node type is tracklab's, JAX's or a built-in one;
   * XLA compiled it in this process: one that JAX loaded from its own persistent cache
     serialises without some of its kernels' code;
   * it runs on the CPU (where the only kernels outside XLA a program calls are LAPACK's, set

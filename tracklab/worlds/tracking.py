@@ -27,8 +27,10 @@ never stops the batch.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass, field
-from typing import Any, Callable, NamedTuple, Sequence
+import hashlib
+import re
+from dataclasses import dataclass, field, replace
+from typing import Any, Callable, Mapping, NamedTuple, Sequence
 
 import jax
 import jax.extend
@@ -62,20 +64,56 @@ class FilterSpec:
     """A filter of one's own among an experiment's filters: its label and its ``Filter``.
 
     The filter's ``params`` pytree is an input of the compiled program (``tracklab.tune``
-    may name its leaves); where position and velocity sit in its state is ``layout``, by
-    default the filter's own (``Filter.layout``), else [x, ẋ, y, ẏ(, z, ż)]. It sees the
-    sensors named in ``sensors`` (default all: their measurements concatenated in the
-    experiment's order; a component is NaN when its sensor has no report). ``kind`` is what
-    the tables call it. Part of a program's structure by identity: a new object compiles anew.
+    may name its leaves; ``declared`` are the numbers its factory declares, by name: what
+    ``tracklab tune --params`` and the sweeps name); where position and velocity sit in its
+    state is ``layout``, by default the filter's own (``Filter.layout``), else
+    [x, ẋ, y, ẏ(, z, ż)]. It sees the sensors named in ``sensors`` (default all: their
+    measurements concatenated in the experiment's order; a component is NaN when its sensor
+    has no report). ``kind`` is what the tables call it.
+
+    As structure of a program it is its ``code`` (``program_key``: what its init and step
+    trace to, the constants they close over included) with its label, kind, sensors and
+    layout: two filters with the same code compile to the same program whatever their params'
+    values, and one whose code changed (a number its factory baked in, an edited module)
+    compiles anew. Without a ``code`` it is structure by identity: a new object compiles anew.
     """
 
     label: str
-    filter: Filter
+    filter: Filter = field(repr=False)
     kind: str = "user"
     sensors: tuple[str, ...] = ()
     layout: Any = None  # a Layout (or a motion model); None: the filter's own
-    view: Callable | None = None  # what it sees of the sensors' z (T, M) -> (T, m), when not a selection
+    view: Callable | None = field(default=None, repr=False)  # what it sees of z (T, M) -> (T, m), when not a selection
     prior_extra_var: float | None = None  # prior variance of states beyond position/velocity; None: the experiment's
+    declared: Mapping = field(default_factory=dict, repr=False)  # name -> Param: its factory's declared numbers
+    code: str | None = None  # program_key of its filter; None: structure by identity
+
+    def _value(self):
+        return (self.label, self.kind, tuple(self.sensors), self.layout, self.filter.layout, self.prior_extra_var,
+                self.code)
+
+    def _by_value(self) -> bool:
+        return self.code is not None and self.view is None
+
+    def __eq__(self, other):
+        if not isinstance(other, FilterSpec):
+            return NotImplemented
+        if not (self._by_value() and other._by_value()):
+            return self is other
+        return self._value() == other._value()
+
+    def __hash__(self):
+        return hash(self._value()) if self._by_value() else id(self)
+
+    def __repr__(self):
+        what = f"code={self.code!r}" if self._by_value() else "<by identity>"  # '<': never kept on disk
+        return (f"FilterSpec(label={self.label!r}, kind={self.kind!r}, sensors={tuple(self.sensors)!r}, "
+                f"layout={self.layout or self.filter.layout!r}, prior_extra_var={self.prior_extra_var!r}, {what})")
+
+    def with_code(self, scenario, sensor) -> "FilterSpec":
+        """This filter as structure by value: its ``program_key`` at the experiment's shapes."""
+        _, seen = self.sees(sensor)
+        return replace(self, code=program_key(self.filter, self.report_layout(scenario.dim).n, seen.m))
 
     def report_layout(self, dim: int):
         return self.layout or self.filter.layout or interleaved(dim)
@@ -111,6 +149,40 @@ class FilterSpec:
             return f"layout {why}"
         _, seen = self.sees(sensor)
         return trace_problem(flt, layout.n, seen.m)
+
+
+def program_key(flt: Filter, n: int, m: int) -> str | None:
+    """What a filter compiles to, as a digest: its ``init``, ``step`` and ``coast`` traced (float64)
+    with a state of ``n`` and measurements of ``m`` components, each measurement with and without
+    its report pattern — their jaxprs and every constant they close over — and the params'
+    pytree. Filters with the same key compile to the same program whatever their params'
+    values. None when it calls back into Python (nothing to identify it by but its identity)."""
+    f64 = lambda *shape: jax.ShapeDtypeStruct(shape, jnp.float64)  # noqa: E731
+    h = hashlib.sha256()
+
+    def add(closed):
+        text = re.sub(r" at 0x[0-9a-f]+", "", str(closed.jaxpr))
+        h.update(text.encode())
+        for c in closed.consts:
+            a = np.asarray(c)
+            h.update(f"{a.dtype}{a.shape}".encode())
+            h.update(a.tobytes())
+        return text
+
+    with jax.enable_x64(True):
+        params = jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(
+            np.shape(a), jnp.float64 if jnp.issubdtype(jnp.result_type(a), jnp.floating) else jnp.result_type(a)),
+            flt.params)
+        h.update(str(jax.tree_util.tree_structure(params)).encode())
+        init, state = jax.make_jaxpr(flt.init, return_shape=True)(params, Prior(f64(n), f64(n, n)))
+        texts = [add(init)]
+        for present in (None, jax.ShapeDtypeStruct((m,), bool)):
+            meas = Meas(f64(m), f64(), jax.ShapeDtypeStruct((), bool), present)
+            for fn in (flt.step, flt.coast) if flt.coast is not None else (flt.step,):
+                texts.append(add(jax.make_jaxpr(fn)(params, state, meas)))
+    if any("callback" in t for t in texts):
+        return None
+    return h.hexdigest()
 
 
 @dataclass(frozen=True)
