@@ -164,11 +164,11 @@ def bench_throughput(labels, runs, chunk, seed=0, repeat=1):
     compile_s: ``runner.program``'s seconds (tracing, lowering and compiling the program);
     throughput from the fastest full pass over all chunks with the compiled program.
     """
-    from tracklab.worlds import tracking
+    from tracklab.worlds.tracking import scan
 
     chunk = min(chunk, runs)
     exp, structure, params = _restricted(labels, chunk)
-    world = tracking.world(structure) if labels else simulation_world(chunk)
+    world = scan.world(structure) if labels else simulation_world(chunk)
     t = time_program(world, params, runs, seed, repeat)
     diverged = {lab: float(t["sums"][lab]["diverged"]) for lab in structure.labels}
     return {
@@ -489,7 +489,7 @@ def main():
     import tracklab
 
     tracklab.configure()  # one CPU device per core, Eigen single-threaded, 64-bit mode
-    from tracklab.worlds.tracking import default_chunk
+    from tracklab.worlds.tracking.scan import default_chunk
 
     info = machine_info()
     info["loadavg"] = " ".join(f"{x:.2f}" for x in load_start)

@@ -89,7 +89,7 @@ def main(argv=None):
     ap.add_argument("--print", action="store_true", help="print only; do not write benchmarks/tune.md")
     args = ap.parse_args(argv)
     sys.path.insert(0, str(ROOT))
-    from tracklab.tune import FORWARD_UP_TO
+    from tracklab.studies.tune import FORWARD_UP_TO
 
     rows = []
     for case in CASES:

@@ -96,7 +96,7 @@ class Data:
         import jax.numpy as jnp
         import numpy as np
 
-        from tracklab.worlds.tracking import simulate_runs
+        from tracklab.worlds.tracking.scan import simulate_runs
 
         P0 = np.asarray(exp.prior_covariance())
         sim = jax.jit(lambda key, idx: simulate_runs(exp.scenario, exp.sensor, jnp.asarray(P0), key, idx))
@@ -125,21 +125,21 @@ def model_matrices(exp):
 def _time_tracklab(exp, runs, chunk, repeat):
     """``bench_lidar.time_program`` on the tracking world of the experiment's structure at ``chunk``."""
     from bench_lidar import time_program
-    from tracklab.worlds import tracking
+    from tracklab.worlds.tracking import scan
 
     structure = exp.structure(chunk=chunk)
-    return structure, time_program(tracking.world(structure), exp.params(), runs, seed=0, repeat=repeat)
+    return structure, time_program(scan.world(structure), exp.params(), runs, seed=0, repeat=repeat)
 
 
 def tracklab_e2e(exp, runs, chunk, repeat):
     """Simulate + filter + statistics, chunk by chunk, as ``runner.run`` does it, with the program
     ``runner.program`` compiled for the experiment's structure at this chunk size."""
-    from tracklab.worlds import tracking
+    from tracklab.worlds.tracking import errors
 
     structure, t = _time_tracklab(exp, runs, chunk, repeat)
     assert not t["held"], "the program was already compiled in this process: its compile time would read 0"
     return {"wall_s": t["wall_s"], "compile_s": t["compile_s"], "chunk": chunk,
-            "sums": tracking.unpack(t["sums"], exp.dim)[structure.labels[0]]}
+            "sums": errors.unpack(t["sums"], exp.dim)[structure.labels[0]]}
 
 
 def tracklab_pass(exp, runs, chunk):
@@ -296,12 +296,12 @@ def draws_alone(exp):
     import jax.numpy as jnp
 
     from tracklab.montecarlo import runner
-    from tracklab.worlds.tracking import _split_keys
+    from tracklab.worlds.tracking.scan import split_keys
 
     scenario, sensor, T = exp.scenario, exp.sensor, exp.steps
 
     def fn(key, idx):
-        k_truth, k_meas, _ = _split_keys(runner.run_keys(key, idx))
+        k_truth, k_meas, _ = split_keys(runner.run_keys(key, idx))
         meas = jax.vmap(lambda k: sensor.draws(k, T))(k_meas)
         total = sum(jnp.sum(a.astype(jnp.float32), axis=0) for a in jax.tree_util.tree_leaves(meas))
         if scenario.per_run:

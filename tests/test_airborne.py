@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 
 import tracklab  # noqa: F401  (64-bit mode)
-from tracklab.airborne.boresight import ModelParams, antenna_motion, drift, los_frame, los_state, rotate
-from tracklab.airborne.cd_ekf import CDParams, cd_ekf
-from tracklab.airborne.classical import ClassicalParams, classical, crossover, loop_gains, open_loop
-from tracklab.airborne.decoupled import channel_matrices, van_loan
-from tracklab.airborne.engagement import Engagement, singer_block
-from tracklab.airborne.tracker import Timing
+from tracklab.worlds.airborne.boresight import ModelParams, antenna_motion, drift, los_frame, los_state, rotate
+from tracklab.worlds.airborne.cd_ekf import CDParams, cd_ekf
+from tracklab.worlds.airborne.classical import ClassicalParams, classical, crossover, loop_gains, open_loop
+from tracklab.worlds.airborne.decoupled import channel_matrices, van_loan
+from tracklab.worlds.airborne.engagement import Engagement, singer_block
+from tracklab.worlds.airborne.tracker import Timing
 from tracklab.config import load_experiment
-from tracklab.metrics import average_chi2_interval
+from tracklab.montecarlo.statistics import average_chi2_interval
 
 
 def _geometry(eng, t):
@@ -111,8 +111,8 @@ def test_cd_ekf_tick_integrates_mean_covariance_and_the_transitions_tangent():
     """One RK4 tick of the joint EKF against a plain RK4 written here: the mean, the covariance
     (dP/dt = F P + P Fᵀ + G Q Gᵀ with F the full Jacobian), and the transition's columns, which
     must be the Jacobian ∂x(t+dt)/∂(x, u) of the mean's RK4 step (jax.jacfwd of it)."""
-    from tracklab.airborne.boresight import antenna_rate_at, process_noise
-    from tracklab.airborne.cd_ekf import rk4_tick
+    from tracklab.worlds.airborne.boresight import antenna_rate_at, process_noise
+    from tracklab.worlds.airborne.cd_ekf import rk4_tick
 
     rng = np.random.default_rng(3)
     x = jnp.array([2e-3, 0.05, 20.0, -1e-3, -0.03, -15.0, 8000.0, -300.0, 5.0])
@@ -325,7 +325,7 @@ def test_moose_that_cannot_switch_is_the_joint_ekf():
 
     (The merged level of a bank that can switch is pulled by every level with any probability, so an
     absurd level is not harmless: it must be impossible.)"""
-    from tracklab.airborne.moose import MooseParams, moose
+    from tracklab.worlds.airborne.moose import MooseParams, moose
 
     tm = Timing(0.01, 5, 0.02)
     mp = ModelParams(*(jnp.asarray(v) for v in (30.0, 10.0, 30.0, 10.0)))
@@ -354,7 +354,7 @@ def test_the_fusion_emitters_are_on_when_trackers_share_their_code():
     two of its trackers have the same kind and range-velocity channel (``world.compiler_options``)."""
     from pathlib import Path
 
-    from tracklab.airborne.world import compiler_options
+    from tracklab.worlds.airborne.world import compiler_options
 
     on = (("xla_cpu_use_fusion_emitters", True),)
     found = {}

@@ -26,7 +26,7 @@ from tracklab.filters import (
 )
 from tracklab.filters.alphabeta import ABState
 from tracklab.filters.core import Meas, Prior
-from tracklab.metrics import statistics
+from tracklab.montecarlo.statistics import statistics
 from tracklab.models import ca, cv
 from tracklab.sensors import Sensor
 

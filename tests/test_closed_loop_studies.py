@@ -6,7 +6,7 @@ import pytest
 
 from tracklab.config import load_experiment, parse_experiment
 from tracklab.config.paths import parse_grid
-from tracklab.sweep import sweep
+from tracklab.studies.sweep import sweep
 
 AIRBORNE = """
 [experiment]
@@ -93,7 +93,7 @@ def _alone(exp, *settings):
     if hasattr(one, "trackers"):
         out = one.monte_carlo(chunk=exp.chunk)
         return one.document(out.sums, out.runs, out.wall_s, out.compile_s, one.precision, out.samples)
-    from tracklab.metrics import statistics
+    from tracklab.montecarlo.statistics import statistics
 
     return statistics(one.monte_carlo(chunk=exp.chunk), one.window, one.pred_windows)
 
@@ -136,7 +136,7 @@ def test_airborne_q_r_mismatch_grid_in_one_sweep(tmp_path):
 
 @pytest.mark.parametrize("world, params, loss", [("airborne", "q_scale,lam", "pointing"), ("servo", "q", "track_mse")])
 def test_tune_runs_on_a_closed_loop_and_writes_a_file_run_accepts(tmp_path, world, params, loss):
-    from tracklab.studies import check_tune, run_tune
+    from tracklab.studies.files import check_tune, run_tune
 
     exp = _load(tmp_path, world, {"airborne": AIRBORNE, "servo": SERVO}[world])
     names = params.split(",")

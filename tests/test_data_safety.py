@@ -359,7 +359,7 @@ def test_a_signal_while_writing_leaves_old_or_complete_new_results(tmp_path, sig
 
 
 def test_airborne_tracker_that_lost_lock_everywhere_shows_missing(tmp_path):
-    from tracklab.experiments.airborne import airborne_tables, write_airborne_results
+    from tracklab.report.airborne import airborne_tables, write_airborne_results
 
     p = tmp_path / "air.toml"
     p.write_text(AIRBORNE.replace("duration = 4.0", "duration = 25.0") + '\n[[tracker]]\nkind = "classical"\n')
@@ -388,8 +388,8 @@ def test_airborne_tracker_that_lost_lock_everywhere_shows_missing(tmp_path):
 
 
 def test_servo_case_statistics_leave_diverged_runs_out():
-    from tracklab.experiments.servo import case_summary
-    from tracklab.servo.world import case_sums
+    from tracklab.worlds.servo.experiment import case_summary
+    from tracklab.worlds.servo.world import case_sums
 
     mx = np.array([0.1, 0.2, np.inf, 1e20, 0.05])  # deg: two healthy runs, one overflowed, one lost the target
     rnd = np.array([0.001, 0.003, np.nan, 1e19, 0.002])
@@ -403,7 +403,7 @@ def test_servo_case_statistics_leave_diverged_runs_out():
 
 
 def test_sweep_table_shows_missing_not_nan(tmp_path):
-    from tracklab.sweep import write_sweep
+    from tracklab.report.sweep import write_sweep
 
     summary = lambda v: {"rmse_pos": v, "rmse_vel": v, "pred_err_rms": v, "nees": v, "nees_in_bounds": v,
                          "diverged": 0 if np.isfinite(v) else 6}
@@ -558,7 +558,7 @@ def test_reproduce_refuses_a_readme_it_did_not_write_and_a_study_grid_no_filter_
 
 
 def test_heatmap_cells_are_centred_on_their_grid_values():
-    from tracklab.sweep import _log_edges
+    from tracklab.report.sweep import _log_edges
 
     edges = _log_edges([0.1, 1.0, 10.0])
     np.testing.assert_allclose(edges, [10**-1.5, 10**-0.5, 10**0.5, 10**1.5])
@@ -568,8 +568,8 @@ def test_heatmap_cells_are_centred_on_their_grid_values():
 
 
 def test_a_label_cannot_break_a_markdown_table(tmp_path):
-    from tracklab.experiments.airborne import airborne_tables
-    from tracklab.report import markdown_table
+    from tracklab.report.airborne import airborne_tables
+    from tracklab.report.tables import markdown_table
 
     doc = {"filters": {"EKF | x": {"kind": "ekf", "summary": {"rmse_pos": 1.0, "runs": 3}}}}
     row = markdown_table(doc).splitlines()[2]

@@ -112,7 +112,7 @@ def test_gradient_through_the_dual_ekf_matches_finite_differences(name):
 def test_dekf_as_an_experiment_filter_on_the_sine_target(tmp_path):
     """kind = "dekf" in an experiment file (1-D sine truth, angle measurements): runs beside a CA KF."""
     from tracklab.config import load_experiment
-    from tracklab.metrics import statistics
+    from tracklab.montecarlo.statistics import statistics
 
     (tmp_path / "d.toml").write_text("""
 [experiment]

@@ -15,12 +15,12 @@ import pytest
 import tracklab.filters
 from tracklab import cli
 from tracklab.config import load_experiment
-from tracklab.experiments.tracking import Experiment
+from tracklab.worlds.tracking.experiment import Experiment
 from tracklab.errors import ConfigError
 from tracklab.parameters import Constraint, Param
 from tracklab.filters.registry import KINDS, SCALABLE, TUNABLE, declarations
 from tracklab.sensors import SENSOR_KINDS
-from tracklab.tune import decode, encode
+from tracklab.studies.tune import decode, encode
 
 TUNED = [k for k in KINDS.values() if any(p.tune for p in k.params.values())]
 

@@ -11,7 +11,7 @@ import pytest
 import tracklab
 from tracklab.config import load_experiment
 from tracklab.filters import build, noise_params
-from tracklab.metrics import statistics
+from tracklab.montecarlo.statistics import statistics
 from tracklab.models import ca, cv
 from tracklab.sensors import Sensor
 

@@ -97,7 +97,7 @@ def test_imm_in_an_experiment_with_2d_and_3d_sensors(tmp_path, sensor):
     """On the CV crossing the IMM pays a little for its other models (RMSE within 30 % of the
     CV EKF's) and is never overconfident; mixing in the CA and CT spreads makes it conservative."""
     from tracklab.config import load_experiment
-    from tracklab.metrics import statistics
+    from tracklab.montecarlo.statistics import statistics
 
     spec = {"polar": 'kind = "polar"\nsigma_r = 50.0\nsigma_angle = 0.002',
             "spherical": 'kind = "spherical"\nsigma_r = 50.0\nsigma_az = 0.002\nsigma_el = 0.002'}[sensor]

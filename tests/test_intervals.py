@@ -8,7 +8,7 @@ import pytest
 import tracklab
 from tracklab.config import load_experiment
 from tracklab.intervals import precision_reached, t_quantile, wilson
-from tracklab.metrics import statistics
+from tracklab.montecarlo.statistics import statistics
 from tracklab.models import cv
 
 import test_closed_loop_studies as studies  # the closed loops' tiny files
@@ -239,7 +239,7 @@ def test_closed_loop_intervals_equal_numpy_on_the_runs(tmp_path):
     exp = load_experiment(write(tmp_path, SERVO, "s.toml"))
     doc = exp.simulate(exp.runs, exp.seed)
     from tracklab.montecarlo import runner
-    from tracklab.servo.world import world
+    from tracklab.worlds.servo.world import world
 
     out = runner.run(world(exp.structure()), exp.params(), exp.runs, exp.seed)
     kf, loop = (out.samples.kept(i, 0) for i in range(2))  # each run's maximum tracking error (′)
@@ -282,7 +282,8 @@ def test_a_value_and_its_half_width_are_shown_to_the_half_widths_two_digits():
     titles) writes the half-width to two significant digits and the value to the same decimal: a
     half-width below the column's last decimal is not shown as 0.000; one that is exactly zero (a
     deterministic case) is 0; a missing value is a dash."""
-    from tracklab.figures import _run0_panels, pyplot
+    from tracklab.report.servo import _run0_panels
+    from tracklab.report.figures import pyplot
     from tracklab.intervals import with_half_width
 
     assert with_half_width(12.1946972, 0.009588753814, "{:.3f}") == "12.1947 ± 0.0096"

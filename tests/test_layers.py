@@ -1,8 +1,9 @@
 """Imports go downward only: each part of the package uses the parts below it, never one above.
 
-Bottom to top: the building blocks (filters, models, sensors, scenarios, the runner, …); the
-worlds; the report and its figures; the validated experiments; the experiment-file parsers (config); the
-studies (tune, sweep); the command line; the public API. A circle, or a world importing its
+Bottom to top: the building blocks (filters, models, sensors, scenarios, the runner and its
+statistics, …); the report (results folders, tables and figures from statistics documents); the
+worlds and their experiments; the experiment-file parsers (config); the studies (tune, sweep and
+their files); the command line; the public API. A circle, or a world importing its
 parser, fails here with the module and the import that goes up.
 """
 
@@ -12,13 +13,12 @@ from pathlib import Path
 import tracklab
 
 LAYERS = [
-    {"errors", "runtime", "pytree", "parameters", "linalg", "random", "toml_fields", "memory", "output", "models", "sensors", "scenarios",
-     "metrics", "intervals", "montecarlo", "filters", "filtering"},
-    {"worlds", "airborne", "servo"},
-    {"report", "figures"},
-    {"experiments"},
+    {"errors", "runtime", "pytree", "parameters", "linalg", "random", "toml_fields", "memory", "output", "models", "sensors",
+     "scenarios", "intervals", "montecarlo", "filters", "filtering"},
+    {"report"},
+    {"worlds"},
     {"config"},
-    {"tune", "sweep", "studies"},
+    {"studies"},
     {"reproduce", "cli"},
     {"__init__"},
 ]

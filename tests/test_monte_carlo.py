@@ -11,9 +11,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab.config import load_experiment
-from tracklab.worlds.tracking import FilterSpec, monte_carlo
+from tracklab.worlds.tracking.lanes import FilterSpec
+from tracklab.worlds.tracking.outcome import monte_carlo
 from tracklab.filters import Filter, build, noise_params
-from tracklab.metrics import average_chi2_interval, chi2_quantile, statistics
+from tracklab.montecarlo.statistics import average_chi2_interval, chi2_quantile, statistics
 from tracklab.models import cv
 
 LINEAR = """

@@ -21,7 +21,7 @@ import pytest
 import tracklab
 from tracklab import FilterSpec, Out
 from tracklab.cli import main
-from tracklab.metrics import statistics
+from tracklab.montecarlo.statistics import statistics
 
 ROOT = Path(__file__).resolve().parents[1]
 EXPERIMENTS = ROOT / "experiments"
@@ -100,7 +100,7 @@ def test_a_filter_giving_only_x_and_P_runs_with_empty_NIS_and_prediction_columns
 def test_recorded_data_give_the_statistics_of_the_simulation(compared, tmp_path):
     """run_filter over the simulated runs' measurements, judged against their truth by
     ``evaluate``, gives the simulation's statistics (the same code computes both)."""
-    from tracklab.worlds.tracking import simulate_runs
+    from tracklab.worlds.tracking.scan import simulate_runs
 
     exp, res, st = compared
     with jax.enable_x64(True):

@@ -9,8 +9,8 @@ import numpy as np
 
 import tracklab
 from tracklab.config import load_experiment
-from tracklab.worlds.tracking import simulate_runs
-from tracklab.metrics import statistics
+from tracklab.worlds.tracking.scan import simulate_runs
+from tracklab.montecarlo.statistics import statistics
 from tracklab.scenarios import MountFrame, Overflight
 
 EXPERIMENT = """

@@ -190,13 +190,13 @@ def test_a_filters_statistics_do_not_depend_on_the_program_around_it(tmp_path):
     filter alone makes them inside its own step: every arrangement gives each filter the same
     sums (a mixed-up lane is off by far more): all seven kinds, three of them in another order
     (each in another lane, and sharing its kernels with other filters), one alone."""
-    from tracklab.worlds import tracking
+    from tracklab.worlds.tracking import outcome
 
     order = ["EKF", "alpha-beta", "CMKF", "UKF", "IMM", "STF", "Polar KF"]
     exp = load_experiment(_write(tmp_path, "kinds", _every_kind(order)))
 
     def sums(exp):
-        out = tracking.run(exp.structure(), exp.params(), exp.runs, exp.seed).sums
+        out = outcome.run(exp.structure(), exp.params(), exp.runs, exp.seed).sums
         return {f"{lab}/{k}": np.asarray(v, float) for lab, d in out.items() for k, v in d.items()}
 
     ref = sums(exp)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from jax.scipy.linalg import expm
 
-from tracklab.servo import AzimuthAxis, TransferFunction, closed_position_loop, discretise, sine_target, track
+from tracklab.worlds.servo import AzimuthAxis, TransferFunction, closed_position_loop, discretise, sine_target, track
 
 AXIS = AzimuthAxis()
 L = AXIS.open_position_loop()
@@ -156,7 +156,7 @@ estimator = "perfect"
 def test_cone_target_rates():
     """The rig's azimuth: rates from autodiff agree with finite differences; peak rate and acceleration
     near the paper's 24.2 °/s and 30.7 °/s²."""
-    from tracklab.servo.world import cone_target
+    from tracklab.worlds.servo.world import cone_target
 
     f = jax.jit(jax.vmap(cone_target(13.5, 26.0, 4.5)))
     t = np.linspace(0, 4.5, 4501)

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from tracklab.config import load_experiment
-from tracklab.metrics import statistics
+from tracklab.montecarlo.statistics import statistics
 from tracklab.config.paths import parse_grid
-from tracklab.sweep import sweep
+from tracklab.studies.sweep import sweep
 
 from test_cli import in_process
 
@@ -88,13 +88,13 @@ def test_cli_sweep(tmp_path, monkeypatch, capsys):
 def test_a_curve_that_barely_moves_is_drawn_flat():
     """A sweep curve whose values change by a fraction of a percent gets a linear axis at least
     ±10 % about them (a log axis scaled to the data would fill the panel); a decade or more: log."""
-    from tracklab.figures import pyplot
-    from tracklab.sweep import _value_axis
+    from tracklab.report.figures import pyplot
+    from tracklab.report.sweep import value_axis
 
     plt = pyplot()
     fig, (flat, steep) = plt.subplots(1, 2)
-    _value_axis(flat, np.array([2.6113, 2.6114, 2.6139]), positive=True)
-    _value_axis(steep, np.array([2.4, 40.0, 1100.0]), positive=True)
+    value_axis(flat, np.array([2.6113, 2.6114, 2.6139]), positive=True)
+    value_axis(steep, np.array([2.4, 40.0, 1100.0]), positive=True)
     lo, hi = flat.get_ylim()
     assert flat.get_yscale() == "linear" and lo <= 2.6126 * 0.9 and hi >= 2.6126 * 1.1
     assert steep.get_yscale() == "log"

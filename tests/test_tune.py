@@ -14,7 +14,7 @@ import pytest
 
 from tracklab.config import load_experiment
 from tracklab.filters import kalata_alpha_beta
-from tracklab.tune import FORWARD_UP_TO, gradient, numbers, objective, tune, tuned_numbers
+from tracklab.studies.tune import FORWARD_UP_TO, gradient, numbers, objective, tune, tuned_numbers
 
 from test_cli import in_process
 
@@ -194,7 +194,7 @@ import tracklab
 tracklab.configure()  # the device count from XLA_FLAGS
 import jax
 from tracklab.config import load_experiment
-from tracklab.tune import tune
+from tracklab.studies.tune import tune
 
 class Compiles(logging.Handler):
     def __init__(self):

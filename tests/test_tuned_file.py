@@ -26,8 +26,8 @@ from tracklab.config.writeback import tuned_text
 from tracklab.filters.registry import KINDS
 from tracklab.output import TUNED_HEADER
 from tracklab.pytree import named_leaves, with_leaves
-from tracklab.tune import decode, encode
-from tracklab.worlds.tracking import FilterSpec
+from tracklab.studies.tune import decode, encode
+from tracklab.worlds.tracking.lanes import FilterSpec
 
 ROOT = Path(__file__).resolve().parents[1]
 BUNDLED = sorted((ROOT / "experiments").glob("*.toml"))
@@ -329,8 +329,8 @@ def test_a_tuned_file_is_the_file_with_only_the_tuned_numbers_changed(files, tmp
         if values:  # and not vacuously: the tuned numbers moved
             assert any(not np.array_equal(np.asarray(x), np.asarray(y)) for x, y in
                        zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(exp.params()))), path.name
-    from tracklab.experiments.airborne import TRACKERS
-    from tracklab.experiments.servo import ESTIMATOR_KINDS
+    from tracklab.worlds.airborne.experiment import TRACKERS
+    from tracklab.worlds.servo.experiment import ESTIMATOR_KINDS
     from tracklab.scenarios import SCENARIO_KINDS
     from tracklab.sensors import SENSOR_KINDS
 

@@ -8,7 +8,7 @@ settings it is measured with (one CPU device per core, single-threaded Eigen ker
 from tracklab import filters, models, scenarios, sensors
 from tracklab.config import load_experiment
 from tracklab.config.python import experiment
-from tracklab.experiments.recorded import evaluate
+from tracklab.worlds.tracking.recorded import evaluate
 from tracklab.filtering import FilterResult, run_filter
 from tracklab.filters.context import FilterContext, SensorModel, filter_context
 from tracklab.filters.core import Filter, Meas, Out, Prior
@@ -16,8 +16,9 @@ from tracklab.filters.factory import declare
 from tracklab.models import Layout
 from tracklab.parameters import Param
 from tracklab.runtime import configure
-from tracklab.tune import tune
-from tracklab.worlds.tracking import FilterSpec, MonteCarloResult, monte_carlo
+from tracklab.studies.tune import tune
+from tracklab.worlds.tracking.lanes import FilterSpec
+from tracklab.worlds.tracking.outcome import MonteCarloResult, monte_carlo
 
 __version__ = "0.1.0"
 

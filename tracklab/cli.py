@@ -52,7 +52,7 @@ def _fraction(s):
 
 def cmd_run(args) -> int:
     from tracklab.config import MAX_RUNS, load_experiment
-    from tracklab.report import markdown_table
+    from tracklab.report.tables import markdown_table
 
     exp = load_experiment(args.experiment)
     per_run = getattr(exp, "ticks", exp.steps)  # closed loops: radar samples or servo ticks
@@ -93,8 +93,8 @@ def cmd_run(args) -> int:
 def cmd_list(args) -> int:
     from tracklab.config.factories import kinds_of_ones_own
     from tracklab.filters.factory import declared
-    from tracklab.experiments.airborne import TRACKERS
-    from tracklab.experiments.servo import TARGET_KINDS
+    from tracklab.worlds.airborne.experiment import TRACKERS
+    from tracklab.worlds.servo.experiment import TARGET_KINDS
     from tracklab.filters.registry import KINDS
     from tracklab.scenarios import SCENARIO_KINDS
     from tracklab.sensors import SENSOR_KINDS
@@ -144,8 +144,8 @@ def cmd_tune(args) -> int:
 
     from tracklab.config import load_experiment
     from tracklab.filters.registry import TUNABLE, declarations
-    from tracklab.studies import check_tune, run_tune
-    from tracklab.worlds.tracking import LOSSES
+    from tracklab.studies.files import check_tune, run_tune
+    from tracklab.worlds.tracking.errors import LOSSES
 
     exp = load_experiment(args.experiment)
     names = [n.strip() for n in args.params.split(",") if n.strip()]
@@ -184,7 +184,8 @@ def cmd_sweep(args) -> int:
     from tracklab.config import MAX_RUNS, load_experiment
     from tracklab.output import check_results_folder
     from tracklab.config.paths import parse_grid
-    from tracklab.sweep import grid_points, runs_text, sweep, write_sweep
+    from tracklab.studies.sweep import grid_points, sweep
+    from tracklab.report.sweep import runs_text, write_sweep
 
     exp = load_experiment(args.experiment)
     axes = []

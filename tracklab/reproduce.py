@@ -16,7 +16,7 @@ import math
 from pathlib import Path
 
 from tracklab.output import TABLE_BEGIN as BEGIN, TABLE_END as END  # the results README's table markers
-from tracklab.report import md_cell
+from tracklab.report.tables import md_cell
 
 METRICS = {  # titles without units: the "unit" column gives each row's (m, or deg for a mount)
     "unit": ("unit", "{}"),
@@ -150,12 +150,12 @@ def update_readme(readme: Path, table: str):
 
 def _check_outputs(exps, jobs, experiments_dir: Path, results_dir: Path, quick, max_memory):
     """Every output of every job and study, and every job's memory, checked before anything runs."""
-    from tracklab.experiments.tracking import Experiment
+    from tracklab.worlds.tracking.experiment import Experiment
     from tracklab.errors import ConfigError
     from tracklab.output import check_results_folder, check_results_parent
-    from tracklab.studies import check_tune
+    from tracklab.studies.files import check_tune
     from tracklab.config.paths import parse_grid
-    from tracklab.sweep import check_sweep
+    from tracklab.studies.sweep import check_sweep
 
     check_results_parent(results_dir, experiments_dir)
     for exp, runs, out in jobs:
@@ -183,7 +183,7 @@ def reproduce(experiments_dir="experiments", results_dir="results", quick=False,
     the results folders written, in order."""
     from tracklab.config import load_experiment
     from tracklab.errors import ConfigError
-    from tracklab.studies import run_study
+    from tracklab.studies.files import run_study
 
     folder = Path(experiments_dir)
     if not folder.is_dir():

@@ -74,11 +74,12 @@ from pathlib import Path
 
 import numpy as np
 
-from tracklab.airborne.engagement import Engagement, nominal_range
+from tracklab.worlds.airborne.engagement import Engagement, nominal_range
 from tracklab.config.fields import (MAX_RUN_STEPS, WINDOW_NAME_RE, Section, auto_runs, check_sections, check_unique,
                                     experiment_header, level_and_baseline)
 from tracklab.errors import ConfigError
-from tracklab.experiments.airborne import MAX_TICKS, MRAD, TRACKER_KINDS, AirborneExperiment, TrackerConfig
+from tracklab.worlds.airborne.closed_loop import MRAD
+from tracklab.worlds.airborne.experiment import MAX_TICKS, TRACKER_KINDS, AirborneExperiment, TrackerConfig
 
 
 def _read_windows(f, rp: Section, duration, disturbance):

@@ -54,9 +54,8 @@ from pathlib import Path
 from tracklab.config.fields import (MAX_RUN_STEPS, Section, auto_runs, check_sections, check_unique, experiment_header,
                                     level_and_baseline)
 from tracklab.errors import ConfigError
-from tracklab.experiments.servo import (CAMERA_LOOPS, ESTIMATOR_KINDS, MAX_TICKS, TARGET_KINDS, TICK_RANGE, Case,
-                                        EstimatorConfig, ServoExperiment)
-from tracklab.servo.loops import MODES, AzimuthAxis
+from tracklab.worlds.servo.experiment import CAMERA_LOOPS, ESTIMATOR_KINDS, MAX_TICKS, TARGET_KINDS, TICK_RANGE, Case, EstimatorConfig, ServoExperiment
+from tracklab.worlds.servo.loops import MODES, AzimuthAxis
 
 
 def _check_latency(f, delay, frame_dt, mode):

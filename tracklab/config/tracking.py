@@ -18,19 +18,19 @@ from tracklab.config import factories
 from tracklab.config.factories import is_factory
 from tracklab.config.studies import parse_studies
 from tracklab.errors import ConfigError, first_line
-from tracklab.experiments.tracking import Experiment, FilterConfig
+from tracklab.worlds.tracking.experiment import Experiment, FilterConfig
 from tracklab.filters.fusion import view_of as _view
 from tracklab.filters.context import filter_context
 from tracklab.filters.core import Filter
 from tracklab.filters.factory import declared
 from tracklab.filters.kind import Entry
 from tracklab.filters.registry import KINDS
-from tracklab.metrics import REPORT_WINDOW
+from tracklab.montecarlo.statistics import REPORT_WINDOW
 from tracklab.scenarios import (SCENARIO_KINDS, ConstantVelocity, Crossing, Generated, Manoeuvre, MountFrame, Overflight, Sine,
                                  Trajectory, TrajectoryError, read_csv)
 from tracklab.sensors import SENSOR_KINDS, SENSOR_SIGMAS, CustomSensor, Sensor, SensorSuite
 from tracklab.toml_fields import MAX_MAGNITUDE, sigma_list as _sigma_list
-from tracklab.worlds.tracking import FilterSpec
+from tracklab.worlds.tracking.lanes import FilterSpec
 
 SENSOR_DIM = {"polar": 2, "spherical": 3, "angles": 3, "mount": 3}  # dimension of the truth they observe
 

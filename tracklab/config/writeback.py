@@ -24,7 +24,6 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import numpy as np
 import tomlkit
 
 from tracklab.config.factories import is_factory
@@ -33,7 +32,7 @@ from tracklab.filters.registry import KINDS
 from tracklab.parameters import write_value
 from tracklab.output import TUNED_HEADER
 from tracklab.sensors import SENSOR_SIGMAS
-from tracklab.worlds.tracking import FilterSpec
+from tracklab.worlds.tracking.lanes import FilterSpec
 
 
 def write_back(exp, fc) -> WriteBack:

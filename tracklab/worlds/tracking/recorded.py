@@ -12,16 +12,74 @@ the steps: ``Trajectory(path, dt, steps, dim).simulate(None)[1:]``.
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import jax
+import jax.extend
+import jax.numpy as jnp
 import numpy as np
 
-from tracklab.metrics import REPORT_WINDOW
-from tracklab.models import interleaved
+from tracklab.montecarlo.statistics import REPORT_WINDOW
+from tracklab.models import cv_index, interleaved
+from tracklab.worlds.tracking.scan import window_mask, with_report_window
+from tracklab.worlds.tracking.errors import (MAXIMA, SUMS, accumulated_lengths, lane_sums, named, run_errors, run_samples,
+                                               sample_names)
+from tracklab.worlds.tracking.outcome import MonteCarloResult
 from tracklab.montecarlo.samples import RunSamples
-from tracklab.worlds.tracking import MonteCarloResult, recorded_sums, sample_names, with_report_window
+
+
+def recorded_sums(out, truth, layout, windows: dict | None = None) -> dict:
+    """One filter's per-step sums over recorded runs, as a chunk's scan makes them (named as
+    ``unpack`` names them): ``out`` an ``Out`` of arrays (N, T, …) (``run_filter``'s), ``truth``
+    (N, T, 2·dim) in CV layout at the same steps, ``layout`` where position and velocity sit in
+    the filter's state. A run with a NaN/inf estimate or a covariance that is not positive
+    definite at any step is diverged and left out of every sum, as in a simulation."""
+    pv = tuple(int(i) for i in cv_index(layout))
+    truth = jnp.asarray(truth)
+    windows = with_report_window(windows or {}, truth.shape[1])
+    lengths = accumulated_lengths(len(pv) // 2, windows)
+    out = jax.tree_util.tree_map(jnp.asarray, out)
+    res = _recorded_sums(out, truth, jnp.asarray(window_mask(windows)), jnp.asarray(lengths, truth.dtype), pv,
+                         tuple(windows))
+    return jax.tree_util.tree_map(np.asarray, res)
+
+@functools.partial(jax.jit, static_argnums=(4, 5))
+def _recorded_sums(out, truth, wmask, lengths, pv, names):
+    """``recorded_sums`` as one program (compiled once per shape)."""
+    pv = np.asarray(pv)
+    dtype = truth.dtype
+    N = truth.shape[0]
+    d = len(pv) // 2
+    xs = (jax.tree_util.tree_map(lambda a: jnp.swapaxes(a, 0, 1), out), jnp.swapaxes(truth, 0, 1), wmask)
+    errors = jax.vmap(lambda o, t: run_errors(o, t, pv, dtype), out_axes=-1)  # over the runs, runs last
+
+    def bad_of(bad_any, inp):
+        return bad_any | errors(inp[0], inp[1]).bad, None
+
+    diverged, _ = jax.lax.scan(bad_of, jnp.zeros((N,), bool), xs)
+
+    def step(carry, inp):
+        runmax, acc = carry
+        out_k, truth_k, w_k = inp
+        r = errors(out_k, truth_k)
+        sums, maxima, runmax = lane_sums(r, ~diverged, runmax, w_k, dtype)
+        acc = acc + run_samples(r, w_k.astype(dtype))
+        return (runmax, acc), (sums, maxima)
+
+    carry0 = (jnp.zeros((len(names), d + 1, N), dtype), jnp.zeros((lengths.shape[0], N), dtype))
+    (runmax, acc), (sums, maxima) = jax.lax.scan(step, carry0, xs)
+    res = named(sums, SUMS, d) | named(maxima, MAXIMA, d)
+    for j, name in enumerate(names):
+        res[f"runmax_pred@{name}"] = jnp.sum(jnp.where(~diverged, runmax[j], 0.0), axis=-1)
+    res["diverged"] = jnp.sum(diverged.astype(dtype))
+    res["example_x"] = out.x[0][:, pv]
+    res["example_var"] = jnp.diagonal(out.P[0][:, pv[:, None], pv[None, :]], axis1=-2, axis2=-1)
+    values = jnp.concatenate([acc / lengths[:, None], runmax.reshape(-1, N)])
+    res["per_run"] = {"values": values, "ok": ~diverged, "kept": jnp.sqrt(values[:1])}
+    return res
 
 
 @dataclass
@@ -41,7 +99,6 @@ class Recorded:
     def ran_with(self) -> dict:
         return self.parameters
 
-
 def _batched(a, what, ndim):
     a = np.asarray(a, float)
     if a.ndim == ndim:
@@ -50,7 +107,6 @@ def _batched(a, what, ndim):
         raise ValueError(f"evaluate: {what} has shape {np.shape(a)}: expected {ndim} or {ndim + 1} axes")
     return a
 
-
 def evaluate(results, truth, *, dt: float, name: str = "recorded", window: tuple[int, int] | None = None,
              windows: dict | None = None, params: dict | None = None, out=None, figures: bool = True) -> dict:
     """The statistics document (what stats.json holds) of filters' results on recorded
@@ -58,7 +114,7 @@ def evaluate(results, truth, *, dt: float, name: str = "recorded", window: tuple
     table.md, table.csv, figures), written as ``tracklab run`` writes one. The arguments
     are those of ``judge``."""
     from tracklab.output import atomic_folder, check_results_folder
-    from tracklab.report import stats_document, write_results
+    from tracklab.worlds.tracking.experiment import stats_document, write_results
 
     recorded, res = judge(results, truth, dt=dt, name=name, window=window, windows=windows, params=params)
     if out is None:
@@ -66,7 +122,6 @@ def evaluate(results, truth, *, dt: float, name: str = "recorded", window: tuple
     folder = check_results_folder(out, None)
     with atomic_folder(folder, None) as tmp:
         return write_results(recorded, res, tmp, figures=figures)
-
 
 def judge(results, truth, *, dt: float, name: str = "recorded", window: tuple[int, int] | None = None,
           windows: dict | None = None, params: dict | None = None):

@@ -27,9 +27,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.linalg import block_diag
 
-from tracklab.airborne.boresight import EPS, OMEGA, antenna_motion
-from tracklab.airborne.cd_ekf import command
-from tracklab.airborne.tracker import Timing, Tracker
+from tracklab.worlds.airborne.boresight import EPS, OMEGA, antenna_motion
+from tracklab.worlds.airborne.cd_ekf import command
+from tracklab.worlds.airborne.tracker import Timing, Tracker
 from tracklab.filters.core import kalman_update, symmetrise
 from tracklab.linalg import expm, mm
 

@@ -24,22 +24,15 @@ runs are processed in blocks so memory stays bounded.
 from __future__ import annotations
 
 import copy
-import csv
-import io
 import itertools
 import time
-from pathlib import Path
-
 import jax
 import numpy as np
-
 from tracklab.config import parse_experiment
 from tracklab.config.paths import Axis, set_value, table_of
 from tracklab.errors import ConfigError
 from tracklab.montecarlo import runner
-from tracklab.output import atomic_folder
-from tracklab.intervals import with_half_width
-from tracklab.report import md_cell, write_json
+
 
 def _path_of(exp, a: Axis):
     """The file's value at a PATH axis (None when the file leaves it to its default); ConfigError
@@ -55,10 +48,8 @@ def _path_of(exp, a: Axis):
                           "can be swept")
     return v
 
-
 def grid_points(axes: list[Axis]) -> int:
     return int(np.prod([len(a.values) for a in axes], dtype=float))
-
 
 def _call_shape(exp, points, runs, chunk=None, block_points=None):
     """(runs, grid points) of one call: memory per call grows with grid points × runs × steps,
@@ -67,7 +58,6 @@ def _call_shape(exp, points, runs, chunk=None, block_points=None):
     steps = getattr(exp, "ticks", exp.steps)
     chunk = int(min(chunk or exp.chunk or 1000, runs, max(1, budget // steps)))  # a sweep's own program
     return chunk, int(block_points or max(1, min(points, budget // (chunk * steps))))
-
 
 def memory_bytes(exp, axes: list[Axis], runs=None) -> float:
     """A lower bound: every grid point's per-step statistics of every filter (kept until the
@@ -78,7 +68,6 @@ def memory_bytes(exp, axes: list[Axis], runs=None) -> float:
     width = 2 * exp.dim + exp.sensor.m if hasattr(exp, "sensor") else 12
     per_point = exp.steps * (lanes * 64 + getattr(exp, "dim", 1) ** 2) * 8.0
     return P * per_point + block * chunk * getattr(exp, "ticks", exp.steps) * width * 4.0
-
 
 def check_sweep(exp, axes: list[Axis], runs=None, limit=None):
     """Refuse (ConfigError, one line) what a sweep cannot mean: an axis named twice, a scale factor
@@ -104,7 +93,6 @@ def check_sweep(exp, axes: list[Axis], runs=None, limit=None):
     check(exp.path, memory_bytes(exp, axes, runs), limit, f"a sweep of {grid_points(axes):.3g} grid points",
           "fewer grid points (N in NAME=LO:HI:N), or fewer experiment.steps")
 
-
 def _scalable(exp) -> list[str]:
     """The parameter names a scale-factor axis may name in this experiment."""
     if hasattr(exp, "filters"):
@@ -113,11 +101,9 @@ def _scalable(exp) -> list[str]:
         return ["q", "r"] if any(t.kind != "classical" for t in exp.trackers) else []
     return ["q", "r"] if getattr(exp, "estimators", ()) else []
 
-
 def _scales(exp, name) -> bool:
     """Whether a scale-factor axis ``name`` scales something in this experiment."""
     return name in _scalable(exp)
-
 
 def point(exp, axes: list[Axis], values):
     """One grid point: (the file with the PATH values set, validated as a file is; its params, scale
@@ -140,11 +126,9 @@ def point(exp, axes: list[Axis], values):
     params = at.params()
     return at, (at.scaled(params, factors) if factors else params)
 
-
 def _shape(params):
     leaves, treedef = jax.tree_util.tree_flatten(params)
     return treedef, tuple((np.shape(a), np.asarray(a).dtype.name) for a in leaves)
-
 
 def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=None, progress=None, max_memory=None,
           log=None):
@@ -206,7 +190,6 @@ def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=
             "units": list(exp.units), "nees_dof": getattr(exp, "nees_dof", None),
             "metrics": [[k, t.format(pos=exp.units[0])] for k, t in exp.sweep_metrics]}
 
-
 def _group_of(groups: dict, P: int) -> list:
     """Each grid point's group key."""
     out = [None] * P
@@ -215,7 +198,6 @@ def _group_of(groups: dict, P: int) -> list:
             out[j] = k
     return out
 
-
 def _changes(values, i, where) -> bool:
     """Whether axis ``i`` alone puts grid points into different groups (``where``: each point's)."""
     seen: dict = {}
@@ -223,183 +205,3 @@ def _changes(values, i, where) -> bool:
         if seen.setdefault(v[:i] + v[i + 1:], w) != w:
             return True
     return False
-
-
-def write_sweep(exp, doc, out, figures=True):
-    """sweep.json, table.md, table.csv and heatmaps (1-D: curves) of RMSE and NEES per filter."""
-    with atomic_folder(Path(out), exp.path) as tmp:
-        return _write_sweep(exp, doc, tmp, figures)
-
-
-def _csv(v):
-    return v if v is not None and np.isfinite(v) else ""
-
-
-_NOT_METRICS = ("runs", "diverged", "lost_lock", "healthy_runs")
-
-
-def _metrics(summary: dict) -> list[str]:
-    """The columns of a sweep's table: the headline statistics of the world's summaries."""
-    if "pred_err_rms" in summary:  # open-loop tracking
-        return (["rmse_pos", "rmse_vel", "pred_err_rms"] + [k for k in summary if k.startswith("pred_err_max[")]
-                + ["nees", "nees_in_bounds"])
-    return [k for k, v in summary.items() if k not in _NOT_METRICS and (v is None or isinstance(v, (int, float)))]
-
-
-def _write_sweep(exp, doc, tmp, figures):
-    names = list(doc["axes"])
-    labels = list(doc["points"][0]["stats"]["filters"])
-    metrics = _metrics(doc["points"][0]["stats"]["filters"][labels[0]]["summary"])
-    rows, hws = [], []
-    for p in doc["points"]:
-        for l in labels:
-            f = p["stats"]["filters"][l]
-            s, hw = f["summary"], f.get("half_width", {})
-            rows.append([*(p["values"][n] for n in names), l, *(s.get(m) for m in metrics), s.get("diverged", 0)])
-            hws.append([hw.get(m) for m in metrics])
-    with_hw = [m for j, m in enumerate(metrics) if any(h[j] is not None for h in hws)]
-    heads = [n if "." in n else f"{n} x" for n in names]
-    header = [*heads, "filter", *metrics, "diverged"]
-    lines = ["| " + " | ".join(md_cell(h) for h in header) + " |", "|" + "|".join(["---"] * len(header)) + "|"]
-    for r, h in zip(rows, hws):
-        cells = ([f"{v:.4g}" for v in r[:len(names)]] + [md_cell(r[len(names)])]
-                 + [with_half_width(v, hw, "{:.4g}") for v, hw in zip(r[len(names) + 1:-1], h)] + [str(int(r[-1]))])
-        lines.append("| " + " | ".join(cells) + " |")
-    level = doc["points"][0]["stats"].get("level", 0.95)
-    same = ("every point on the same runs" if doc.get("programs", 1) == 1 else
-            f"the grid ran as {doc['programs']} programs, {', '.join(doc.get('structural')) or 'runs or seed'} changing "
-            "what is compiled: the points of one program on the same runs")
-    caption = (f"\n± : half-width of the {level:.0%} confidence interval over the {runs_text(doc['runs'])} runs at each "
-               f"point ({same}).\n") if with_hw else ""
-    (tmp / "table.md").write_text("\n".join(lines) + "\n" + caption)
-    buf = io.StringIO()
-    header_csv = header[:-1] + [f"{m}_hw" for m in with_hw] + header[-1:]
-    csv.writer(buf).writerows([header_csv, *([*r[:len(names) + 1], *map(_csv, r[len(names) + 1:-1]),
-                                              *(_csv(h[metrics.index(m)]) for m in with_hw), r[-1]]
-                                             for r, h in zip(rows, hws))])
-    (tmp / "table.csv").write_text(buf.getvalue())
-    summary_only = {
-        "name": exp.name, "runs": doc["runs"], "window": list(exp.window), "axes": doc["axes"],
-        "titles": doc["titles"], "wall_s": doc["wall_s"], "compile_s": doc["compile_s"],
-        "level": doc["points"][0]["stats"].get("level"),
-        "points": [{"values": p["values"], "filters": {l: {"kind": f["kind"], "summary": f["summary"]}
-                                                        | ({"half_width": f["half_width"]} if "half_width" in f else {})
-                                                        for l, f in p["stats"]["filters"].items()}}
-                   for p in doc["points"]],
-        "experiment": exp.raw,
-    }
-    write_json(tmp / "sweep.json", summary_only)
-    if figures and len(names) <= 2:
-        _plot(doc, names, labels, tmp)
-    return rows
-
-
-def runs_text(runs) -> str:
-    """A sweep's runs per point: one number, or the range a runs axis spans."""
-    return str(runs) if isinstance(runs, int) else f"{min(runs)}–{max(runs)}"
-
-
-def _log_edges(values):
-    """Cell edges for values on a log axis: geometric midpoints, the end cells as wide as their
-    neighbours (a single value: a factor 2 either side)."""
-    v = np.log(np.asarray(values, float))
-    if len(v) == 1:
-        return np.exp(v[0] + np.array([-np.log(2), np.log(2)]))
-    mid = 0.5 * (v[1:] + v[:-1])
-    return np.exp(np.concatenate([[v[0] - (mid[0] - v[0])], mid, [v[-1] + (v[-1] - mid[-1])]]))
-
-
-def _edges(values, log):
-    """Cell edges that put each cell's centre on its grid value (on a log axis: in log)."""
-    if log:
-        return _log_edges(values)
-    v = np.asarray(values, float)
-    if len(v) == 1:
-        half = 0.5 * abs(v[0]) or 0.5
-        return np.array([v[0] - half, v[0] + half])
-    mid = 0.5 * (v[1:] + v[:-1])
-    return np.concatenate([[v[0] - (mid[0] - v[0])], mid, [v[-1] + (v[-1] - mid[-1])]])
-
-
-def _value_axis(ax, vals, positive):
-    """A curve's value axis: logarithmic when its values span a decade or more; otherwise linear,
-    at least ±10 % about their middle, so that a change of a fraction of a percent reads as flat
-    (on a log axis auto-scaled to the data it would fill the panel)."""
-    if vals.size == 0:
-        return
-    lo, hi = float(np.min(vals)), float(np.max(vals))
-    if positive and hi >= 10 * lo:
-        ax.set_yscale("log")
-        return
-    mid, half = (lo + hi) / 2, (hi - lo) / 2
-    half = max(half * 1.1, 0.1 * abs(mid), 1e-12)
-    ax.set_ylim(mid - half, mid + half)
-    ax.ticklabel_format(axis="y", style="plain", useOffset=False)
-
-
-def _plot(doc, names, labels, folder):
-    """Per metric one figure, a panel per filter laid out in a grid (at most three across): 1-D
-    sweeps as curves with each point's confidence interval, 2-D sweeps as heatmaps with each
-    cell centred on its grid values. The NEES's consistent value (its degrees of freedom) is a
-    line on the curves and a white contour on the heatmaps."""
-    from tracklab.figures import pyplot
-
-    plt = pyplot()
-
-    axes_vals = [np.asarray(doc["axes"][n]) for n in names]
-    titles, log = doc["titles"], doc["log"]
-    dof = doc.get("nees_dof")
-    for metric, title in doc["metrics"]:
-        # None (no healthy run at a point) -> NaN -> masked: left blank
-        values = {l: np.ma.masked_invalid(np.array([p["stats"]["filters"][l]["summary"].get(metric)
-                                                    for p in doc["points"]], float)) for l in labels}
-        half = {l: np.array([p["stats"]["filters"][l].get("half_width", {}).get(metric, np.nan)
-                             for p in doc["points"]], float) for l in labels}
-        if all(v.mask.all() for v in values.values()):
-            continue  # nothing to draw (e.g. no NEES in this world)
-        if any(np.ma.is_masked(v) for v in values.values()):
-            title += " — blank: no run without divergence"
-        positive = all(bool(np.all(v.compressed() > 0)) for v in values.values())
-        mark = dof if metric == "nees" and dof else None
-        cols = min(len(labels), 3)
-        rows = -(-len(labels) // cols)
-        fig, axs = plt.subplots(rows, cols, figsize=(4.6 * cols, 3.8 * rows), squeeze=False, layout="constrained")
-        for ax, l in zip(axs.flat, labels):
-            vals = values[l]
-            if len(names) == 1:
-                ax.errorbar(axes_vals[0], vals, yerr=np.where(np.isfinite(half[l]), half[l], 0.0), fmt="o-", ms=4,
-                            capsize=2)
-                ax.set_xscale("log" if log[names[0]] else "linear")
-                _value_axis(ax, np.concatenate([vals.compressed()] + ([[mark]] if mark else [])), positive)
-                if mark:
-                    ax.axhline(mark, color="k", lw=0.8, ls="--", label=f"consistent ({mark})")
-                    ax.legend(fontsize=7, loc="best")
-                ax.set_xlabel(titles[names[0]])
-                ax.set_ylabel(title, fontsize=8)
-                ax.grid(True, which="both", alpha=0.3)
-            else:
-                grid = vals.reshape(len(axes_vals[0]), len(axes_vals[1]))
-                shown = np.ma.log10(grid) if positive else grid
-                im = ax.pcolormesh(_edges(axes_vals[1], log[names[1]]), _edges(axes_vals[0], log[names[0]]), shown)
-                if mark and len(axes_vals[0]) > 1 and len(axes_vals[1]) > 1:
-                    level = np.log10(mark) if positive else mark
-                    if np.nanmin(shown) < level < np.nanmax(shown):
-                        ax.contour(axes_vals[1], axes_vals[0], shown, levels=[level], colors="w", linewidths=1.5)
-                ax.set_xscale("log" if log[names[1]] else "linear")
-                ax.set_yscale("log" if log[names[0]] else "linear")
-                ax.set_xticks(axes_vals[1], [f"{v:g}" for v in axes_vals[1]], fontsize=7)
-                ax.set_yticks(axes_vals[0], [f"{v:g}" for v in axes_vals[0]], fontsize=7)
-                ax.minorticks_off()
-                ax.set_xlabel(titles[names[1]], fontsize=8)
-                ax.set_ylabel(titles[names[0]], fontsize=8)
-                cb = fig.colorbar(im, ax=ax, label=f"log10 {metric}" if positive else metric)
-                if mark:
-                    cb.ax.axhline(np.log10(mark) if positive else mark, color="w", lw=1.5)
-            ax.set_title(l, fontsize=9)
-        for ax in list(axs.flat)[len(labels):]:
-            ax.axis("off")
-        if mark and len(names) == 2:
-            title += f" — white line: consistent NEES = {mark}"
-        fig.suptitle(title, fontsize=10)
-        fig.savefig(folder / f"sweep_{metric}.png", dpi=110)
-        plt.close(fig)

@@ -57,14 +57,15 @@ import numpy as np
 import optax
 
 from tracklab.config.writeback import write_back
-from tracklab.experiments.tracking import declared_of
+from tracklab.worlds.tracking.experiment import declared_of
 from tracklab.filters.kind import FilterKind
 from tracklab.filters.registry import KINDS
 from tracklab.montecarlo import runner
 from tracklab.parameters import constraint_of, positive
 from tracklab.pytree import named_leaves, with_leaves
-from tracklab.worlds import tracking
-from tracklab.worlds.tracking import LOSSES, FilterSpec
+from tracklab.worlds.tracking import errors, scan
+from tracklab.worlds.tracking.errors import LOSSES
+from tracklab.worlds.tracking.lanes import FilterSpec
 
 
 def _constrained_together(kind: FilterKind, params: dict, names):
@@ -293,7 +294,7 @@ def objective(exp, names, loss="mse_pos", labels=None) -> Objective:
     if hasattr(exp, "tune_selection"):
         return _closed_loop_objective(exp, chosen, loss)
     structure = exp.structure()
-    world = tracking.world(structure)
+    world = scan.world(structure)
     fn = runner.sharded(world)
     params = exp.params()
     base = params.filters
@@ -324,7 +325,7 @@ def objective(exp, names, loss="mse_pos", labels=None) -> Objective:
 
     def per_filter(theta, key, idx, live):
         p = params._replace(filters=filters(theta))
-        sums = tracking.unpack(fn(p, key, idx, live, jnp.zeros((len(labels_all), idx.shape[0]), bool)), exp.dim)
+        sums = errors.unpack(fn(p, key, idx, live, jnp.zeros((len(labels_all), idx.shape[0]), bool)), exp.dim)
         return {l: loss_fn(sums[l], window) for l in chosen}
 
     def values(theta):

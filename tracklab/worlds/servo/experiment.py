@@ -10,22 +10,26 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-
 import jax.numpy as jnp
 import numpy as np
 
+from tracklab.report.servo import write_servo_results
+
 
 ESTIMATOR_KINDS = ("kf", "dekf")
+
 TARGET_KINDS = {  # [target] kind -> its fields (paper 003: the sine test and the dynamic-target rig)
     "sine": "amplitude (deg), omega (rad/s)",
     "cone": "half_angle, axis_elevation (deg), period (s): a point circling a cone",
 }
+
 MAX_TICKS = 10**7  # servo ticks per run (frames × frame_ticks)
+
 # the correctors are the paper's continuous designs (poles up to 400 rad/s), discretised at
 # the tick: the tick is kept near the paper's 1 ms
 TICK_RANGE = (1e-4, 2e-3)  # s
-CAMERA_LOOPS = ("double_loop", "velocity_lag")  # modes whose position loop is closed through the camera
 
+CAMERA_LOOPS = ("double_loop", "velocity_lag")  # modes whose position loop is closed through the camera
 
 @dataclass(frozen=True)
 class EstimatorConfig:
@@ -42,13 +46,11 @@ class EstimatorConfig:
     train_lr: float = 1e-3
     train_runs: int = 8
 
-
 @dataclass(frozen=True)
 class Case:
     label: str
     mode: str
     estimator: str | None  # a label, "perfect" or None
-
 
 @dataclass
 class ServoExperiment:
@@ -84,7 +86,7 @@ class ServoExperiment:
         return (1, self.frames)
 
     def target_fn(self):
-        from tracklab.servo.world import target_function
+        from tracklab.worlds.servo.world import target_function
 
         return target_function(self.target["kind"], {k: v for k, v in self.target.items() if k != "kind"})
 
@@ -111,7 +113,7 @@ class ServoExperiment:
                            key=jax.random.key(cfg.seed))
 
     def build_estimator(self, cfg: EstimatorConfig):
-        from tracklab.servo.loops import dekf_estimator, kalman_estimator
+        from tracklab.worlds.servo.loops import dekf_estimator, kalman_estimator
 
         if cfg.kind == "kf":
             return kalman_estimator(self.frame_dt, max(self.noise, 1e-3) / 3600.0, cfg.q)
@@ -173,7 +175,7 @@ class ServoExperiment:
             target_precision=None):
         import jax
 
-        from tracklab.report import run_into_folder
+        from tracklab.report.document import run_into_folder
 
         precision = precision or self.precision
 
@@ -190,7 +192,7 @@ class ServoExperiment:
         """What the compiled program depends on: the timing, the target's kind, the cases' modes and
         estimator kinds (a DEKF's network), and the chunk size (by default from the memory budget and
         ``runs``)."""
-        from tracklab.servo.world import CaseSpec, ServoStructure
+        from tracklab.worlds.servo.world import CaseSpec, ServoStructure
 
         by = {e.label: e for e in self.estimators}
         cases = []
@@ -204,7 +206,7 @@ class ServoExperiment:
     def params(self, estimators: dict | None = None):
         """Every number of the experiment, as the compiled program's argument (``estimators``:
         label -> parameters replacing an estimator's own, e.g. trained ones)."""
-        from tracklab.servo.world import ServoParams
+        from tracklab.worlds.servo.world import ServoParams
 
         estimators = estimators or {}
         own = {e.label: estimators.get(e.label) or self.estimator_params(e) for e in self.estimators}
@@ -222,7 +224,7 @@ class ServoExperiment:
     units = ("deg", "deg/s")
 
     def world(self, structure):
-        from tracklab.servo.world import world
+        from tracklab.worlds.servo.world import world
 
         return world(structure)
 
@@ -251,8 +253,8 @@ class ServoExperiment:
         return {"filters": cases, "level": self.level}
 
     def _with_intervals(self, structure, cases, samples, runs):
-        from tracklab.metrics import lane_intervals
-        from tracklab.servo.world import SAMPLES
+        from tracklab.montecarlo.statistics import lane_intervals
+        from tracklab.worlds.servo.world import SAMPLES
 
         stats = {key: ("mean", i) for i, key in enumerate(SAMPLES)}
         diverged = {l: (c["summary"]["diverged"], runs) for l, c in cases.items()}
@@ -308,7 +310,7 @@ class ServoExperiment:
         interval is that tight, ``runs`` at most) and return the statistics document."""
         from tracklab.intervals import precision_reached
         from tracklab.montecarlo import runner
-        from tracklab.servo.world import world
+        from tracklab.worlds.servo.world import world
 
         training, trained = {}, {}
         for e in self.trained_first():
@@ -354,8 +356,8 @@ class ServoExperiment:
 
     def train(self, cfg: EstimatorConfig, est, progress=None):
         """Train a DEKF estimator's initial weights and λ on the rate it feeds forward; held-out evaluation."""
-        from tracklab.servo.loops import Estimator
-        from tracklab.servo.training import train_dekf
+        from tracklab.worlds.servo.loops import Estimator
+        from tracklab.worlds.servo.training import train_dekf
 
         t0 = time.perf_counter()
         net = est.filter_net
@@ -371,7 +373,6 @@ class ServoExperiment:
 
     def _case(self, label):
         return next(c for c in self.cases if c.label == label)
-
 
 def case_summary(sums: dict, runs: int, estimated: bool) -> dict:
     """One case's statistics from its sums over the runs (deg, deg, deg/s; the rate error only
@@ -390,15 +391,3 @@ def case_summary(sums: dict, runs: int, estimated: bool) -> dict:
         "diverged": int(round(float(sums["diverged"]))),
         "runs": int(runs),
     }
-
-
-def write_servo_results(doc, folder: Path, figures=True):
-    """The tables and (``figures``) the figures of a servo statistics document; returns it."""
-    from tracklab.report import write_tables
-
-    write_tables(folder, doc)
-    if figures:
-        from tracklab.figures import plot_servo
-
-        plot_servo(doc, folder)
-    return doc

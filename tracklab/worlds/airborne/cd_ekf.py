@@ -25,8 +25,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from tracklab.airborne.boresight import EPS, OMEGA, ModelParams, antenna_motion, antenna_rate_at, drift, observation_matrix, process_noise
-from tracklab.airborne.tracker import Timing, Tracker
+from tracklab.worlds.airborne.boresight import EPS, OMEGA, ModelParams, antenna_motion, antenna_rate_at, drift, observation_matrix, process_noise
+from tracklab.worlds.airborne.tracker import Timing, Tracker
 from tracklab.filters.core import kalman_update
 from tracklab.linalg import mm, solve
 

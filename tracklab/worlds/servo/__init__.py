@@ -1,7 +1,7 @@
 """Servo loops of an electro-optical theodolite (paper 003): transfer functions, discretisation, tracking."""
 
-from tracklab.servo.loops import MODES, AzimuthAxis, Estimator, closed_position_loop, sine_target, track
-from tracklab.servo.transfer import DiscreteSystem, TransferFunction, discretise, discretise_state_space
+from tracklab.worlds.servo.loops import MODES, AzimuthAxis, Estimator, closed_position_loop, sine_target, track
+from tracklab.worlds.servo.transfer import DiscreteSystem, TransferFunction, discretise, discretise_state_space
 
 __all__ = [
     "MODES", "AzimuthAxis", "DiscreteSystem", "Estimator", "TransferFunction", "closed_position_loop", "discretise",

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from tracklab.intervals import with_half_width
-from tracklab.metrics import AXES
+from tracklab.montecarlo.statistics import AXES
 
 OUTLIER = 3.0  # a filter this many times off the others' median (or off consistency) gets its own panel
 LINESTYLES = ["-", "--", "-.", ":", (0, (5, 1, 1, 1)), (0, (1, 1)), (0, (8, 2)), (0, (3, 1, 1, 1, 1, 1))]
@@ -62,7 +62,7 @@ def styles(labels, points):
             for i, label in enumerate(labels)}
 
 
-def _summary_value(f, key, unit=""):
+def summary_value(f, key, unit=""):
     s, hw = f["summary"].get(key), f.get("half_width", {}).get(key)
     if s is None:
         return ""
@@ -75,7 +75,7 @@ def _label(label, f, keys):
     """The label, then the filter's time-averaged values ``v ± h unit`` one per line (a legend
     entry stays narrow beside the axes). ``keys``: (key, unit) or (key, unit, name), the name
     written before its value."""
-    parts = [(f"{k[2]} " if len(k) > 2 else "", _summary_value(f, k[0], f" {k[1]}").strip()[1:-1]) for k in keys]
+    parts = [(f"{k[2]} " if len(k) > 2 else "", summary_value(f, k[0], f" {k[1]}").strip()[1:-1]) for k in keys]
     return "\n".join([label] + ["  " + n + p for n, p in parts if p])
 
 
@@ -117,7 +117,7 @@ def coincide_note(groups) -> str:
     return "; ".join(f"{', '.join(g)} coincide (within {COINCIDE:.0%})" for g in groups)
 
 
-def _legend(fig, handles_from, note=""):
+def legend(fig, handles_from, note=""):
     """The legend outside the axes, on the right, with the coinciding-curves note beneath it."""
     handles, labels = [], []
     for ax in np.asarray(handles_from).ravel():
@@ -149,7 +149,7 @@ def plain_log(ax, axis="y"):
     a.set_minor_formatter(NullFormatter())
 
 
-def _band(ax, t, v, hw, st, label):
+def band(ax, t, v, hw, st, label):
     ax.plot(t, v, label=label if label is not None else "_nolegend_", **st)
     if hw is not None:
         ok = np.isfinite(v) & np.isfinite(hw)
@@ -190,7 +190,7 @@ def plot_figures(doc, folder: Path):
             plot_track(doc, example, folder)
 
 
-def _grid(plt, rows, cols, width=7.0, height=2.6):
+def panel_grid(plt, rows, cols, width=7.0, height=2.6):
     return plt.subplots(rows, cols, figsize=(width * cols + 2.2, height * rows + 0.6), squeeze=False,
                         sharex=True, layout="constrained")
 
@@ -207,7 +207,7 @@ def _rmse(ctx):
     bounds = doc["bounds"]
     main, out = _two_groups(ctx, "rmse_pos")
     cols = [main] + ([out] if out else [])
-    fig, axs = _grid(ctx["plt"], 2, len(cols))
+    fig, axs = panel_grid(ctx["plt"], 2, len(cols))
     notes = []
     for c, group in enumerate(cols):
         for r, (q, unit, bound) in enumerate((("pos", pu, "pcrlb_pos"), ("vel", vu, "pcrlb_vel"))):
@@ -217,7 +217,7 @@ def _rmse(ctx):
                 s = filters[l]["series"]
                 v = arr(s[f"rmse_{q}"])
                 curves[l] = v
-                _band(ax, t, v, arr(s[f"rmse_{q}_hw"]) if f"rmse_{q}_hw" in s else None, st[l],
+                band(ax, t, v, arr(s[f"rmse_{q}_hw"]) if f"rmse_{q}_hw" in s else None, st[l],
                       _label(l, filters[l], (("rmse_pos", pu), ("rmse_vel", vu))) if r == 0 else None)
             if bound in bounds:
                 ax.plot(t, arr(bounds[bound]), "k--", lw=0.9, label="PCRLB" if r == 0 else None)
@@ -228,7 +228,7 @@ def _rmse(ctx):
                 notes += coinciding(curves, ctx["w"])
                 ax.set_title("filters far from the others (own scale)" if c == 1 else ctx["title"], fontsize=9)
         axs[-1, c].set_xlabel("time (s)")
-    _legend(fig, axs, "; ".join(filter(None, [coincide_note(notes), f"bands: {doc.get('level', 0.95):.0%} "
+    legend(fig, axs, "; ".join(filter(None, [coincide_note(notes), f"bands: {doc.get('level', 0.95):.0%} "
                                               "confidence of each per-step RMSE; in brackets the time-averaged "
                                               "position and velocity RMSE"])))
     fig.savefig(ctx["folder"] / "rmse.png", dpi=110)
@@ -240,13 +240,13 @@ def _rmse_axes(ctx):
     doc, t, filters, st, dim = ctx["doc"], ctx["t"], ctx["filters"], ctx["st"], ctx["dim"]
     AX = doc.get("axes", AXES)
     pu = doc.get("units", ("m", "m/s"))[0]
-    fig, axs = _grid(ctx["plt"], dim, 1)
+    fig, axs = panel_grid(ctx["plt"], dim, 1)
     for a in range(dim):
         ax = axs[a, 0]
         for l, f in filters.items():
             s = f["series"]
-            _band(ax, t, arr(s[f"rmse_{AX[a]}"]), arr(s[f"rmse_{AX[a]}_hw"]) if f"rmse_{AX[a]}_hw" in s else None,
-                  st[l], l + _summary_value(f, f"rmse_{AX[a]}"))
+            band(ax, t, arr(s[f"rmse_{AX[a]}"]), arr(s[f"rmse_{AX[a]}_hw"]) if f"rmse_{AX[a]}_hw" in s else None,
+                  st[l], l + summary_value(f, f"rmse_{AX[a]}"))
         if f"pcrlb_{AX[a]}" in doc["bounds"]:
             ax.plot(t, arr(doc["bounds"][f"pcrlb_{AX[a]}"]), "k--", lw=0.9, label="PCRLB")
         plain_log(ax)
@@ -254,7 +254,7 @@ def _rmse_axes(ctx):
         ax.grid(True, which="both", alpha=0.3)
     axs[0, 0].set_title(ctx["title"], fontsize=9)
     axs[-1, 0].set_xlabel("time (s)")
-    _legend(fig, axs)
+    legend(fig, axs)
     fig.savefig(ctx["folder"] / "rmse_axes.png", dpi=110)
     ctx["plt"].close(fig)
 
@@ -267,13 +267,13 @@ def _mean_error(ctx):
     main, out = split_outliers({l: float(np.nanmax(np.abs(np.concatenate(
         [arr(f["series"][f"mean_err_{AX[a]}"])[ctx["w"]] for a in range(dim)]))) or np.nan) for l, f in filters.items()})
     cols = [main] + ([out] if out else [])
-    fig, axs = _grid(ctx["plt"], dim, len(cols))
+    fig, axs = panel_grid(ctx["plt"], dim, len(cols))
     for c, group in enumerate(cols):
         for a in range(dim):
             ax = axs[a, c]
             for l in group:
                 s = filters[l]["series"]
-                _band(ax, t, arr(s[f"mean_err_{AX[a]}"]),
+                band(ax, t, arr(s[f"mean_err_{AX[a]}"]),
                       arr(s[f"mean_err_{AX[a]}_hw"]) if f"mean_err_{AX[a]}_hw" in s else None, st[l],
                       l if a == 0 else None)
             ax.axhline(0, color="k", lw=0.6)
@@ -281,7 +281,7 @@ def _mean_error(ctx):
             ax.grid(True, alpha=0.3)
         axs[0, c].set_title("filters far from the others (own scale)" if c == 1 else ctx["title"], fontsize=9)
         axs[-1, c].set_xlabel("time (s)")
-    _legend(fig, axs, f"bands: {doc.get('level', 0.95):.0%} confidence of the mean error over the runs")
+    legend(fig, axs, f"bands: {doc.get('level', 0.95):.0%} confidence of the mean error over the runs")
     fig.savefig(ctx["folder"] / "mean_error.png", dpi=110)
     ctx["plt"].close(fig)
 
@@ -294,7 +294,7 @@ def _pred_error(ctx):
     shown = {l: f for l, f in filters.items() if np.isfinite(arr(f["series"]["pred_rmse_" + AX[0]])).any()}
     if not shown:
         return
-    fig, axs = _grid(ctx["plt"], dim, 1)
+    fig, axs = panel_grid(ctx["plt"], dim, 1)
     keys = [(f"pred_err_rms_{AX[a]}", pu, AX[a]) for a in range(dim)]  # each axis's value, named
 
     for a in range(dim):
@@ -310,7 +310,7 @@ def _pred_error(ctx):
         ax.grid(True, which="both", alpha=0.3)
     axs[0, 0].set_title(ctx["title"], fontsize=9, pad=14 if _window_spans(doc) else 6)  # above the windows' names
     axs[-1, 0].set_xlabel("time (s)")
-    _legend(fig, axs)
+    legend(fig, axs)
     fig.savefig(ctx["folder"] / "pred_error.png", dpi=110)
     ctx["plt"].close(fig)
 
@@ -331,7 +331,7 @@ def _consistency(ctx, key, ylabel, dof):
     ratio = {l: (f["summary"].get(key) or np.nan) / centres[l] for l, f in shown.items()}
     main, out = split_outliers(ratio, centre=1.0)
     groups = [main] + ([out] if out else [])
-    fig, axs = _grid(ctx["plt"], len(groups), 1, height=3.0)
+    fig, axs = panel_grid(ctx["plt"], len(groups), 1, height=3.0)
     notes = []
     for g, group in enumerate(groups):
         ax = axs[g, 0]
@@ -341,7 +341,7 @@ def _consistency(ctx, key, ylabel, dof):
             s = shown[l]["series"]
             bands.setdefault((tuple(np.round(arr(s[f"{key}_lo"]), 6)), tuple(np.round(arr(s[f"{key}_hi"]), 6))), l)
             curves[l] = arr(s[key])
-            ax.plot(t, curves[l], label=l + _summary_value(shown[l], key), **st[l])
+            ax.plot(t, curves[l], label=l + summary_value(shown[l], key), **st[l])
         for i, ((lo, hi), l) in enumerate(bands.items()):
             ax.fill_between(t, lo, hi, color="0.82", zorder=0, label=f"{doc.get('level', 0.95):.0%} χ² band"
                             if i == 0 else None)
@@ -365,12 +365,12 @@ def _consistency(ctx, key, ylabel, dof):
         ax.set_ylabel(ylabel if g == 0 else ylabel.split(" (")[0])
         ax.grid(True, which="both", alpha=0.3)
     axs[-1, 0].set_xlabel("time (s)")
-    _legend(fig, axs, "; ".join(n if isinstance(n, str) else coincide_note([n]) for n in notes))
+    legend(fig, axs, "; ".join(n if isinstance(n, str) else coincide_note([n]) for n in notes))
     fig.savefig(ctx["folder"] / f"{key}.png", dpi=110)
     ctx["plt"].close(fig)
 
 
-def _cdf_panel(ax, shown, st, key, pct_key=None):
+def cdf_panel(ax, shown, st, key, pct_key=None):
     """P(a run's value ≤ x) of each filter's ``cdf[key]``; its percentiles in the legend when
     ``pct_key`` (a summary key with ``{p}``) is given."""
     every = max(len(next(iter(shown.values()))["cdf"][key]) // 8, 1)
@@ -399,13 +399,13 @@ def _error_cdf(ctx):
     if not shown:
         return
     pu = doc.get("units", ("m", "m/s"))[0]
-    fig, axs = _grid(ctx["plt"], 1, 1, height=3.6)
+    fig, axs = panel_grid(ctx["plt"], 1, 1, height=3.6)
     ax = axs[0, 0]
-    groups = _cdf_panel(ax, shown, st, "err_pos", "err_pos_p{p}")
+    groups = cdf_panel(ax, shown, st, "err_pos", "err_pos_p{p}")
     ax.set_xlabel(f"run's RMS position error over the report window ({pu})")
     ax.set_ylabel("fraction of runs with error ≤ x")
     ax.set_title(ctx["title"], fontsize=9)
-    _legend(fig, axs, coincide_note(groups))
+    legend(fig, axs, coincide_note(groups))
     fig.savefig(ctx["folder"] / "error_cdf.png", dpi=110)
     ctx["plt"].close(fig)
 
@@ -508,7 +508,7 @@ def plot_example(doc, example, t, dim, folder: Path, st=None):
                                                           if kind == "error" and sd else ""), fontsize=9)
         for ax in axes[-1]:
             ax.set_xlabel("time (s)")
-        _legend(fig, axes)
+        legend(fig, axes)
         fig.savefig(folder / ("run0.png" if kind == "state" else "run0_error.png"), dpi=110)
         plt.close(fig)
 
@@ -529,161 +529,11 @@ def _clip_to_main(ax, est, truth, col, sd):
 
 # the closed-loop worlds
 
-AIRBORNE_PANELS = [  # file, [(series key, axis label)], the paper's figure
-    ("pointing_error.png", [("pointing", "true pointing error RMS (mrad)")], "paper 001 Fig. 3"),
-    ("rate_error.png", [("los_rate", "LOS-rate error RMS (mrad/s)"), ("range_rate", "range-rate error RMS (m/s)")],
-     "paper 001 Fig. 4"),
-    ("range_error.png", [("range", "range error RMS (m)"), ("range_rate", "range-rate error RMS (m/s)")],
-     "paper 001 Fig. 6"),
-]
 
 
-def _range_axis(ax, t, rng):
-    """The nominal range (km) along the top of a time axis."""
-    top = ax.secondary_xaxis("top", functions=(lambda x: np.interp(x, t, rng),
-                                               lambda r: np.interp(r, rng[::-1], t[::-1])))
-    top.set_xticks([r for r in (20, 15, 10, 7, 5, 4, 3, 2) if rng.min() <= r <= rng.max()])
-    top.set_xlabel("nominal range (km)", fontsize=8)
 
 
-def plot_airborne(doc, folder: Path):
-    """The figures of an airborne results folder: per-period RMS errors with their confidence bands
-    (``pointing_error.png``, ``rate_error.png``, ``range_error.png``: paper 001 Figs. 3, 4, 6), the
-    average NEES with its χ² band (``nees.png``) and the distribution of the runs' RMS pointing
-    errors per window (``error_cdf.png``)."""
-    plt = pyplot()
-    t, rng = np.asarray(doc["t"]), np.asarray(doc["nominal_range"]) / 1e3
-    filters = doc["filters"]
-    st = styles(list(filters), len(t))
-    level = doc.get("level", 0.95)
-    title = f"{doc['name']}: {doc['runs']} runs"
-    for name, rows, ref in AIRBORNE_PANELS:
-        fig, axes = _grid(plt, len(rows), 1, width=8.0, height=3.0)
-        for ax, (key, ylabel) in zip(axes[:, 0], rows):
-            for label, f in filters.items():
-                v = arr(f["series"][key])
-                if np.isfinite(v).any():
-                    hw = f["series"].get(f"{key}_hw")
-                    _band(ax, t, v, None if hw is None else arr(hw), st[label] | {"lw": 1.0}, label)
-                else:  # no run in lock: nothing to draw, said in the legend
-                    ax.plot([], [], " ", label=f"{label}: lost lock in every run")
-            ax.set_ylabel(ylabel)
-            plain_log(ax)
-            ax.grid(True, which="both", alpha=0.3)
-        _range_axis(axes[0, 0], t, rng)
-        axes[-1, 0].set_xlabel("time (s)")
-        axes[0, 0].set_title(f"{title} ({ref})", fontsize=9)
-        _legend(fig, axes, f"bands: {level:.0%} confidence of each period's RMS over the runs in lock")
-        fig.savefig(folder / name, dpi=110)
-        plt.close(fig)
-    shown = {l: f for l, f in filters.items() if np.isfinite(arr(f["series"]["nees"])).any()}
-    if shown:
-        fig, axes = _grid(plt, 1, 1, width=8.0, height=3.4)
-        ax = axes[0, 0]
-        for label, f in shown.items():
-            ax.plot(t, arr(f["series"]["nees"]), label=label + _summary_value(f, "nees"), **(st[label] | {"lw": 1.0}))
-        f0 = next(iter(shown.values()))["series"]
-        if "nees_lo" in f0:
-            ax.fill_between(t, arr(f0["nees_lo"]), arr(f0["nees_hi"]), color="0.82", zorder=0,
-                            label=f"{level:.0%} χ² band")
-        ax.axhline(9, color="k", lw=0.6)
-        plain_log(ax)
-        ax.set_ylabel("average NEES (9 states)")
-        ax.set_xlabel("time (s)")
-        ax.grid(True, which="both", alpha=0.3)
-        _range_axis(ax, t, rng)
-        ax.set_title(title, fontsize=9)
-        _legend(fig, axes, "in brackets: the NEES averaged over the whole run")
-        fig.savefig(folder / "nees.png", dpi=110)
-        plt.close(fig)
-    windows = [w for w in doc.get("windows", []) if any(f"pointing[{w}]" in f.get("cdf", {}) for f in filters.values())]
-    if windows:
-        cols = min(len(windows), 3)
-        rows = -(-len(windows) // cols)
-        fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols + 2.2, 3.0 * rows + 0.5), squeeze=False,
-                                 layout="constrained")
-        notes = []  # which curves coincide, panel by panel
-        for ax, w in zip(axes.flat, windows):
-            have = {l: f for l, f in filters.items() if f"pointing[{w}]" in f.get("cdf", {})}
-            groups = _cdf_panel(ax, have, st, f"pointing[{w}]")
-            notes += [f"{w}: {coincide_note(groups)}"] if groups else []
-            ax.set_title(w, fontsize=9)
-            ax.set_xlabel("run's RMS pointing error (mrad)", fontsize=8)
-        for ax in axes[:, 0]:
-            ax.set_ylabel("fraction of runs ≤ x")
-        for ax in list(axes.flat)[len(windows):]:
-            ax.axis("off")
-        fig.suptitle(f"{title}: distribution of the runs' RMS true pointing error per window", fontsize=9)
-        _legend(fig, axes, "; ".join(notes))
-        fig.savefig(folder / "error_cdf.png", dpi=110)
-        plt.close(fig)
 
 
-def _run0_panels(plt, doc, traces, t, settle, ylabel, key, unit, shared_scale):
-    """Run 0's ``traces`` {case: series} against ``t``, one panel per case, each titled with the
-    mean over the runs of each run's largest settled |error| (summary ``key``, in ``unit``) and
-    its 95 % half-width. The y scale is the settled part's (t ≥ ``settle``, dotted), the transient
-    before it runs off: the same for every panel (``shared_scale``) or each its own."""
-    traces = {label: arr(e) for label, e in traces.items()}
-    settled = t >= settle
-
-    def top(e):
-        v = np.abs(e[settled & np.isfinite(e)])
-        lim = 1.2 * np.percentile(v, 99.5) if v.size else 0.0
-        return lim if lim > 0 else None
-
-    tops = [x for x in map(top, traces.values()) if x is not None]
-    st = styles(list(doc["filters"]), len(t))
-    fig, axes = _grid(plt, len(traces), 1, width=8.0, height=1.45)
-    for ax, (label, e) in zip(axes[:, 0], traces.items()):
-        ax.plot(t, e, **(st[label] | {"lw": 0.7, "ls": "-", "marker": None}))
-        ax.axhline(0.0, color="0.5", lw=0.6)
-        ax.axvline(settle, color="0.4", lw=0.8, ls=":")
-        lim = max(tops) if shared_scale and tops else top(e)
-        if lim is not None:
-            ax.set_ylim(-lim, lim)
-        ax.grid(True, alpha=0.3)
-        f = doc["filters"][label]
-        worst, hw = f["summary"].get(key), f["half_width"].get(key)
-        stat = "" if worst is None else (f"; each run's largest settled |error|, mean over the runs "
-                                          f"{with_half_width(worst, hw, '{:.3f}')} {unit}")
-        ax.set_title(label + stat, fontsize=8, loc="left")
-    axes[-1, 0].set_xlabel("time (s)")
-    fig.supylabel(ylabel, fontsize=9)
-    return fig
 
 
-def plot_servo(doc, folder: Path):
-    """The figures of a servo results folder: run 0's tracking error (``tracking_error.png``, paper
-    003 Figs. 5–7) and rate-estimate error (``rate_error.png``, Fig. 4), and the distribution of
-    the runs' maximum tracking errors (``error_cdf.png``)."""
-    plt = pyplot()
-    ex = doc["example_run"]
-    filters = doc["filters"]
-    t = np.asarray(ex["t"])
-    tf = np.asarray(ex["t_frames"])
-    # the errors' settling time (a document without it: the first tenth of the run)
-    settle = ex.get("settle", t[0] + 0.1 * (t[-1] - t[0]))
-    fig = _run0_panels(plt, doc, {k: 60.0 * arr(e) for k, e in ex["error"].items()}, t, settle,
-                       "tracking error (′)", "max_track_err", "′", shared_scale=False)
-    fig.suptitle(f"{doc['name']} — run 0 (paper 003 Figs. 5–7); each panel's scale from t ≥ {settle:g} s (dotted)",
-                 fontsize=9)
-    fig.savefig(folder / "tracking_error.png", dpi=110)
-    plt.close(fig)
-    if ex["rate_error"]:
-        fig = _run0_panels(plt, doc, ex["rate_error"], tf, settle, "rate-estimate error (°/s)",
-                           "max_rate_err", "°/s", shared_scale=True)
-        fig.suptitle(f"{doc['name']} — run 0 (paper 003 Fig. 4); one scale, from t ≥ {settle:g} s (dotted)", fontsize=9)
-        fig.savefig(folder / "rate_error.png", dpi=110)
-        plt.close(fig)
-    shown = {l: f for l, f in filters.items() if f.get("cdf")}
-    if shown:
-        fig, axes = _grid(plt, 1, 1, width=8.0, height=3.6)
-        ax = axes[0, 0]
-        groups = _cdf_panel(ax, shown, styles(list(filters), len(t)), "max_track_err", "max_track_err_p{p}")
-        ax.set_xlabel("run's maximum tracking error after settling (′)")
-        ax.set_ylabel("fraction of runs with error ≤ x")
-        ax.set_title(f"{doc['name']}: {doc['runs']} runs", fontsize=9)
-        _legend(fig, axes, coincide_note(groups))
-        fig.savefig(folder / "error_cdf.png", dpi=110)
-        plt.close(fig)

@@ -8,12 +8,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-
 import jax.numpy as jnp
 import numpy as np
+from tracklab.worlds.airborne.closed_loop import MRAD, SAMPLE_QUANTITIES
+from tracklab.report.airborne import write_airborne_results
+from tracklab.worlds.airborne.engagement import nominal_range
 
-from tracklab.airborne.closed_loop import MRAD, SAMPLE_QUANTITIES
-from tracklab.airborne.engagement import nominal_range
 
 TRACKERS = {
     "cd_ekf": "joint continuous-discrete EKF on the 9-state boresight model, antenna command eq. 1",
@@ -21,9 +21,10 @@ TRACKERS = {
     "classical": "eq. 17 angle loop, alpha-beta-gamma range loop, alpha-beta velocity loop",
     "moose": "joint EKF with Markov-switching mean accelerations (Moose-type adaptive filter)",
 }
-TRACKER_KINDS = tuple(TRACKERS)
-MAX_TICKS = 10**7  # radar samples per run (sample_dt against duration)
 
+TRACKER_KINDS = tuple(TRACKERS)
+
+MAX_TICKS = 10**7  # radar samples per run (sample_dt against duration)
 
 @dataclass(frozen=True)
 class TrackerConfig:
@@ -36,7 +37,6 @@ class TrackerConfig:
     model: tuple = ()  # (sigma_m, tau, sigma_r, tau_r)
     levels: tuple = ()  # moose: mean-acceleration levels (m/s²)
     p_stay: float = 0.99
-
 
 @dataclass
 class AirborneExperiment:
@@ -79,7 +79,7 @@ class AirborneExperiment:
         return (1, self.steps)
 
     def timing(self):
-        from tracklab.airborne.tracker import Timing
+        from tracklab.worlds.airborne.tracker import Timing
 
         return Timing(self.sample_dt, self.average, self.antenna_lag)
 
@@ -99,7 +99,7 @@ class AirborneExperiment:
     def structure(self, chunk=None, runs=None):
         """What the compiled program depends on: timing, periods, jolt tick, Singer on/off, the
         trackers' kinds and the chunk size (by default from the memory budget and ``runs``)."""
-        from tracklab.airborne.world import AirborneStructure, TrackerSpec
+        from tracklab.worlds.airborne.world import AirborneStructure, TrackerSpec
 
         jolt_tick = int(round(self.disturbance[0] / self.sample_dt)) if self.disturbance is not None else -1
         trackers = tuple(TrackerSpec(tc.label, tc.kind, tc.range_velocity) for tc in self.trackers)
@@ -108,8 +108,8 @@ class AirborneExperiment:
 
     def params(self):
         """Every number of the experiment, as the compiled program's argument."""
-        from tracklab.airborne.closed_loop import singer_tick
-        from tracklab.airborne.world import AirborneParams
+        from tracklab.worlds.airborne.closed_loop import singer_tick
+        from tracklab.worlds.airborne.world import AirborneParams
 
         phi, L = singer_tick(self.engagement, self.sample_dt, self.singer)
         trackers, sd0 = [], []
@@ -133,10 +133,10 @@ class AirborneExperiment:
     def tracker_params(self, tc: TrackerConfig, q_scale=None, r_scale=None, lam=None):
         """(parameters, prior standard deviations) of one [[tracker]] table (``q_scale``, ``r_scale``,
         ``lam``: values in place of the table's, possibly traced: what tuning varies)."""
-        from tracklab.airborne.boresight import ModelParams
-        from tracklab.airborne.cd_ekf import CDParams
-        from tracklab.airborne.classical import ClassicalParams, loop_gains
-        from tracklab.airborne.moose import MooseParams
+        from tracklab.worlds.airborne.boresight import ModelParams
+        from tracklab.worlds.airborne.cd_ekf import CDParams
+        from tracklab.worlds.airborne.classical import ClassicalParams, loop_gains
+        from tracklab.worlds.airborne.moose import MooseParams
 
         timing = self.timing()
         acq = self.acquisition
@@ -169,15 +169,15 @@ class AirborneExperiment:
     units = ("mrad", "mrad/s")
 
     def world(self, structure):
-        from tracklab.airborne.world import world
+        from tracklab.worlds.airborne.world import world
 
         return world(structure)
 
     def scaled(self, params, factors: dict):
         """``params`` with the trackers' Q (q: the Singer σ's squared) and R (r) scaled (the classical
         loops have neither)."""
-        from tracklab.airborne.classical import ClassicalParams
-        from tracklab.airborne.moose import MooseParams
+        from tracklab.worlds.airborne.classical import ClassicalParams
+        from tracklab.worlds.airborne.moose import MooseParams
 
         q, r = factors.get("q", 1.0), factors.get("r", 1.0)
 
@@ -239,7 +239,7 @@ class AirborneExperiment:
         """The runner's outcome: per-period sums over runs for every tracker ({label: sums}) and the
         runs' samples. With a target precision (``target_precision``, or the file's runs = "auto")
         chunks run until every tracker's pointing-error interval is that tight, ``runs`` at most."""
-        from tracklab.airborne.world import world
+        from tracklab.worlds.airborne.world import world
         from tracklab.intervals import precision_reached
         from tracklab.montecarlo import runner
 
@@ -271,7 +271,7 @@ class AirborneExperiment:
     def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None, max_memory=None,
             target_precision=None):
         from tracklab.intervals import precision_reached
-        from tracklab.report import run_into_folder
+        from tracklab.report.document import run_into_folder
 
         def simulate():
             target = target_precision or self.target_precision
@@ -296,7 +296,7 @@ class AirborneExperiment:
         """The statistics document of the per-period ``sums`` over ``runs`` runs; with the runs'
         ``samples`` every summary number has its ``level`` interval, and each tracker its paired
         differences to the baseline and its runs' pointing-error percentiles (``intervals``)."""
-        from tracklab.metrics import average_chi2_interval, rms_half_width
+        from tracklab.montecarlo.statistics import average_chi2_interval, rms_half_width
 
         t, masks = self.window_masks()
         steady = masks.get("steady")
@@ -353,7 +353,7 @@ class AirborneExperiment:
         """Each tracker's window summaries from its runs' samples (``closed_loop.run_samples``) with
         their intervals, the Wilson interval of its lost-lock fraction, the percentiles and
         distribution of its runs' RMS true pointing error per window, its paired differences."""
-        from tracklab.metrics import lane_intervals
+        from tracklab.montecarlo.statistics import lane_intervals
 
         whole = {"pointing": "rmse_pos", "los_rate": "rmse_vel", "nees": "nees"}  # the whole run's keys
         names = list(self.windows)
@@ -374,7 +374,6 @@ class AirborneExperiment:
             f["summary"].update(lane.pop("summary"))
             f.update(lane)
 
-
 def settling_time(t, series, t_event, level, hold=1.0):
     """Seconds after t_event until ``series`` stays ≤ level for ``hold`` seconds (NaN if it never does)."""
     after = t >= t_event
@@ -387,75 +386,3 @@ def settling_time(t, series, t_event, level, hold=1.0):
         if run >= need:
             return float(t[i - need + 1] - t_event)
     return float("nan")
-
-
-SUMMARY_TABLES = [  # (key, title, format)
-    ("pointing", "true pointing error RMS (mrad)", "{:.3f}"),
-    ("pointing_estimate", "pointing-error estimate, error RMS (mrad)", "{:.3f}"),
-    ("los_rate", "LOS-rate error RMS (mrad/s)", "{:.3f}"),
-    ("range", "range error RMS (m)", "{:.2f}"),
-    ("range_rate", "range-rate error RMS (m/s)", "{:.3f}"),
-    ("nees", "NEES (9 states; 95 % band about 9)", "{:.2f}"),
-]
-PAIRED_TABLES = [("pointing", "true pointing error RMS", "mrad"), ("los_rate", "LOS-rate error RMS", "mrad/s")]
-
-
-def _table(title, header, rows) -> list[str]:
-    from tracklab.report import md_cell
-
-    return [f"\n## {title}\n", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)] + \
-        ["| " + " | ".join(md_cell(c) for c in r) + " |" for r in rows]
-
-
-def airborne_tables(doc) -> str:
-    """Markdown: one table per quantity, a column per window, each number ± the half-width of its
-    interval; the paired differences to the baseline tracker; the percentiles of the runs' pointing
-    errors; settling times and lost lock (with the Wilson interval of its fraction)."""
-    from tracklab.intervals import with_half_width
-    from tracklab.report import _diverged_cell, _fmt, _paired_cell, auto_note
-
-    windows = doc["windows"]
-    filters = doc["filters"]
-    out = [f"# {doc['name']}: {doc['runs']} runs, {doc['steps']} filter periods of {doc['dt'] * 1e3:.0f} ms"]
-    for key, title, spec in SUMMARY_TABLES:
-        rows = [[label, f["kind"]] + [with_half_width(f["summary"].get(f"{key}[{w}]"),
-                                                      f.get("half_width", {}).get(f"{key}[{w}]"), spec) for w in windows]
-                for label, f in filters.items()]
-        out += _table(title, ["tracker", "kind", *windows], rows)
-    base = next((f["paired"]["baseline"] for f in filters.values() if "paired" in f), None)
-    if base is not None:
-        for key, title, unit in PAIRED_TABLES:
-            rows = [[label] + [_paired_cell(dict(f, label=label), f"{key}[{w}]") for w in windows]
-                    for label, f in filters.items()]
-            out += _table(f"{title}: difference to {base} on the same runs ({unit})", ["tracker", *windows], rows)
-    if any("pointing_p50" in f["summary"] for f in filters.values()):
-        rows = [[label] + [" / ".join(_fmt(f["summary"].get(f"pointing_p{p}[{w}]"), "{:.3f}") for p in (50, 90, 99))
-                           for w in windows] for label, f in filters.items()]
-        out += _table("per-run true pointing error RMS, 50th / 90th / 99th percentile over the runs in lock (mrad)",
-                      ["tracker", *windows], rows)
-    events = sorted({k[7:-1] for f in filters.values() for k in f["summary"] if k.startswith("settle[")})
-    titles = ["tracker", *(f"settle after {e} (s)" for e in events), "lost lock (runs)"]
-    rows = [[label, *(_fmt(f["summary"].get(f"settle[{e}]"), "{:.2f}") for e in events), _diverged_cell(f, "lost_lock")]
-            for label, f in filters.items()]
-    out += _table("Settling and lock", titles, rows)
-    notes = ["Settling: seconds until the LOS-rate error RMS stays within 1.5× its steady-window value for 1 s "
-             "(from the mean curve; no interval)."] if events else []
-    if any("half_width" in f for f in filters.values()):
-        level = doc.get("level", 0.95)
-        notes.append(f"± : half-width of the {level:.0%} confidence interval over the runs in lock (Student t over "
-                     "the runs' window averages; delta method for an RMS). Differences: on the same runs, with "
-                     f"their paired interval; (n.s.): not significant at {level:.0%}. Lost lock: runs, with the "
-                     "Wilson interval of their fraction." + auto_note(doc))
-    return "\n".join(out) + "\n" + "".join(f"\n{n}\n" for n in notes)
-
-
-def write_airborne_results(doc, folder: Path, figures=True):
-    """The tables and (``figures``) the figures of an airborne statistics document; returns it."""
-    from tracklab.report import write_tables
-
-    write_tables(folder, doc, airborne_tables(doc))
-    if figures:
-        from tracklab.figures import plot_airborne
-
-        plot_airborne(doc, folder)
-    return doc

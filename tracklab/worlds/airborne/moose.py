@@ -30,9 +30,9 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from tracklab.airborne.boresight import EPS, observation_matrix
-from tracklab.airborne.cd_ekf import CDParams, command, predict_period
-from tracklab.airborne.tracker import Timing, Tracker
+from tracklab.worlds.airborne.boresight import EPS, observation_matrix
+from tracklab.worlds.airborne.cd_ekf import CDParams, command, predict_period
+from tracklab.worlds.airborne.tracker import Timing, Tracker
 from tracklab.filters.core import symmetrise
 from tracklab.linalg import mm, spd_inverse
 

@@ -15,7 +15,10 @@ from typing import Any
 import numpy as np
 
 from tracklab.filters.registry import KINDS
+from tracklab.montecarlo.statistics import REPORT_WINDOW, statistics
+from tracklab.report.document import decimate, series_stride, write_tables
 from tracklab.sensors import SensorSuite
+from tracklab.worlds.tracking import outcome, scan
 
 
 @dataclass(frozen=True)
@@ -73,7 +76,7 @@ class Experiment:
     def lane(self, fc):
         """A filter as the tracking world's structure holds it: a built-in [[filter]] as its
         declaration, a user's own ``FilterSpec`` as it is."""
-        from tracklab.worlds.tracking import DeclaredFilter, hashable
+        from tracklab.worlds.tracking.lanes import DeclaredFilter, hashable
 
         if not isinstance(fc, FilterConfig):
             return fc
@@ -87,7 +90,7 @@ class Experiment:
         """What the compiled program depends on: the filters' kinds, models, options and views,
         the report windows and the chunk size (from ``runs`` when the file sets none); never the
         run count itself, nor any number."""
-        from tracklab.worlds.tracking import TrackingStructure, default_chunk, windows_of
+        from tracklab.worlds.tracking.scan import TrackingStructure, default_chunk, windows_of
 
         lanes = tuple(self.lane(fc) for fc in self.filters)
         chunk = int(chunk or self.chunk or default_chunk(self.scenario, self.sensor, runs=runs))
@@ -95,7 +98,7 @@ class Experiment:
 
     def params(self):
         """Every number of the experiment, as the compiled program's argument."""
-        from tracklab.worlds.tracking import TrackingParams
+        from tracklab.worlds.tracking.scan import TrackingParams
 
         filters = [{k: np.asarray(v, float) for k, v in fc.params.items()} if isinstance(fc, FilterConfig)
                    else fc.filter.params for fc in self.filters]
@@ -113,7 +116,7 @@ class Experiment:
         measurements of one's own (``run_filter``) or in ``tracklab.monte_carlo``."""
         import jax.numpy as jnp
 
-        from tracklab.worlds.tracking import FilterSpec
+        from tracklab.worlds.tracking.lanes import FilterSpec
 
         structure, params = self.structure(), self.params()
         specs = []
@@ -143,9 +146,7 @@ class Experiment:
                      ("pred_err_rms", "RMS one-step prediction error ({pos})"))
 
     def world(self, structure):
-        from tracklab.worlds import tracking
-
-        return tracking.world(structure)
+        return scan.world(structure)
 
     def scaled(self, params, factors: dict):
         """``params`` with every filter's parameters named in ``factors`` multiplied by them (those its
@@ -160,10 +161,7 @@ class Experiment:
     def summarise(self, structure, params, sums, out, point=None) -> dict:
         """The statistics document of one parameter set's sums (the runner's ``out``; ``point``:
         which of its grid points)."""
-        from tracklab.metrics import statistics
-        from tracklab.worlds import tracking
-
-        return statistics(tracking.result(structure, params, sums, out, point), self.window, self.pred_windows, self.level,
+        return statistics(outcome.result(structure, params, sums, out, point), self.window, self.pred_windows, self.level,
                           self.baseline)
 
     @property
@@ -174,11 +172,9 @@ class Experiment:
         """The Monte-Carlo result of ``runs`` runs (default the file's); with a target precision
         (``target_precision``, or the file's runs = "auto"), chunks run until every filter's
         position-RMSE interval is that tight relative to it, ``runs`` at most."""
-        from tracklab.worlds import tracking
-
         target = target_precision or self.target_precision
         runs = runs or self.runs
-        return tracking.run(self.structure(chunk, runs), self.params(), runs, self.seed if seed is None else seed,
+        return outcome.run(self.structure(chunk, runs), self.params(), runs, self.seed if seed is None else seed,
                             progress=progress, precision=precision or self.precision, target=target, level=self.level)
 
     def memory_bytes(self, runs=None, chunk=None) -> float:
@@ -199,9 +195,69 @@ class Experiment:
         """Run and write the results folder; returns the statistics dictionary.
 
         The output folder and the memory need are checked before anything compiles."""
-        from tracklab.report import run_into_folder, write_results
+        from tracklab.report.document import run_into_folder
+        from tracklab.worlds.tracking.experiment import write_results
 
         return run_into_folder(self, out, runs, max_memory,
                                lambda: self.monte_carlo(runs=runs, seed=seed, progress=progress, precision=precision,
                                                         target_precision=target_precision),
                                lambda res, tmp: write_results(self, res, tmp, figures=figures))
+
+
+def stats_document(exp, res):
+    from tracklab import __version__
+
+    level = getattr(exp, "level", 0.95)
+    st = statistics(res, exp.window, exp.pred_windows, level, getattr(exp, "baseline", None))
+    ran = exp.ran_with()
+    stride = series_stride(res.steps)
+    st = {
+        "bounds": decimate(st["bounds"], stride),
+        "filters": {k: dict(f, series=decimate(f["series"], stride)) for k, f in st["filters"].items()},
+    }
+    return {
+        "name": exp.name,
+        "tracklab_version": __version__,
+        "runs": res.runs,
+        "steps": res.steps,
+        "dt": res.dt,
+        "window": list(exp.window),
+        "series_stride": stride,  # series hold steps stride, 2·stride, … (summaries use every step)
+        "axes": list(res.axes),  # names of the reporting frame's position axes
+        "units": list(res.units),  # of position and velocity
+        "windows": [w for w in exp.pred_windows if w != REPORT_WINDOW],  # named prediction-error windows
+        "level": level,  # of every interval: value ± half_width
+        "wall_s": res.wall_s,
+        "compile_s": res.compile_s,
+        "experiment": exp.raw,
+        "bounds": st["bounds"],
+        "example_run": decimate(example_of(exp, res), stride),
+        "filters": {
+            label: {"kind": f["kind"], "label": label, "params": ran.get(label, {}), "summary": f["summary"]}
+            | {k: f[k] for k in ("half_width", "intervals", "paired", "cdf") if k in f} | {"series": f["series"]}
+            for label, f in st["filters"].items()
+        },
+    } | ({"auto": res.auto} if getattr(res, "auto", None) else {})
+
+def example_of(exp, res):
+    """Run 0 in CV layout: truth, each filter's estimates and (Cartesian sensors) the measurements."""
+    ex = res.example
+    if not ex:
+        return {}
+    doc = {"truth": ex["truth"][1:], "estimates": ex["x"]}
+    if ex.get("var"):  # each filter's own standard deviations of its errors, for the ±3σ envelope
+        doc["sd"] = {k: np.sqrt(np.maximum(np.asarray(v, float), 0.0)) for k, v in ex["var"].items()}
+    kinds = [s.kind for s in exp.sensor.sensors] if exp.sensor is not None else []
+    if len(kinds) == 1 and kinds[0] in ("cartesian", "mount"):
+        doc["measurements"] = ex["z"]
+    return doc
+
+def write_results(exp, res, folder: Path, figures=True):
+    """Write the statistics document, tables and figures into ``folder``; return the document."""
+    doc = stats_document(exp, res)
+    write_tables(folder, doc)
+    if figures:
+        from tracklab.report.figures import plot_figures
+
+        plot_figures(doc, folder)
+    return doc

@@ -36,10 +36,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab.airborne.tracker import Timing, Tracker
+from tracklab.worlds.airborne.tracker import Timing, Tracker
 from tracklab.linalg import mm
 from tracklab.filters.alphabeta import kalata_alpha_beta, kalata_alpha_beta_gamma
-from tracklab.servo.transfer import TransferFunction, discretise
+from tracklab.worlds.servo.transfer import TransferFunction, discretise
 
 
 def open_loop() -> TransferFunction:

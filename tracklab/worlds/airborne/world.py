@@ -27,12 +27,12 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from tracklab.airborne.cd_ekf import cd_ekf
-from tracklab.airborne.classical import classical
-from tracklab.airborne.closed_loop import LoopConfig, engage, run_samples, sums
-from tracklab.airborne.decoupled import decoupled
-from tracklab.airborne.moose import moose
-from tracklab.airborne.tracker import Timing
+from tracklab.worlds.airborne.cd_ekf import cd_ekf
+from tracklab.worlds.airborne.classical import classical
+from tracklab.worlds.airborne.closed_loop import LoopConfig, engage, run_samples, sums
+from tracklab.worlds.airborne.decoupled import decoupled
+from tracklab.worlds.airborne.moose import moose
+from tracklab.worlds.airborne.tracker import Timing
 from tracklab.montecarlo import runner
 
 

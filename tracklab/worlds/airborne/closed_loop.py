@@ -32,9 +32,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab.airborne.boresight import antenna_motion, los_frame, los_state, rotate
-from tracklab.airborne.engagement import Engagement, singer_block
-from tracklab.airborne.tracker import Timing, Tracker
+from tracklab.worlds.airborne.boresight import antenna_motion, los_frame, los_state, rotate
+from tracklab.worlds.airborne.engagement import Engagement, singer_block
+from tracklab.worlds.airborne.tracker import Timing, Tracker
 from tracklab.linalg import mahalanobis2, mm
 
 MRAD = 1e-3  # rad: the unit of the reported angles

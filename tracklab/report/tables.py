@@ -1,21 +1,15 @@
-"""Results folders: stats.json, table.md, table.csv (and the figures of ``tracklab.figures``).
-
-They are written into a temporary folder that replaces the destination in one
-step when complete (``tracklab.output.atomic_folder``).
-"""
+"""Tables of a statistics document: Markdown (every number ``value ± half-width``, the paired
+difference to the baseline, a caption saying what they are) and CSV (the same as numbers)."""
 
 from __future__ import annotations
 
 import csv
 import io
-import json
 import math
-from pathlib import Path
-
 import numpy as np
-
 from tracklab.intervals import format_value, missing, with_half_width
-from tracklab.metrics import AXES, REPORT_WINDOW, statistics
+from tracklab.montecarlo.statistics import AXES
+
 
 # (summary key, title, format); {p}/{v} are the position/velocity units, {a} an axis name
 COLUMNS = [
@@ -42,29 +36,28 @@ COLUMNS = [
     ("diverged", "diverged", "{:d}"),
     ("runs", "runs", "{:d}"),
 ]
+
 PAIRED_COLUMNS = ("rmse_pos", "max_track_err")  # the paired difference table.md shows, the first there is
+
 # (stats.json and table.csv hold them all)
 WINDOW_COLUMNS = [  # per named prediction-error window
     ("pred_err_rms[{w}]", "pred err RMS {w} ({p})", "{:.{d}f}"),
     ("pred_err_max[{w}]", "pred err max {w} ({p})", "{:.{d}f}"),
 ]
 
-
-def _fmt(v, spec):
+def fmt(v, spec):
     return format_value(v, spec)
 
-
-def _diverged_cell(f, key="diverged") -> str:
+def diverged_cell(f, key="diverged") -> str:
     """``k (lo–hi %)``: the diverged runs (summary ``key``) and the Wilson interval of their fraction."""
     k = f["summary"].get(key)
     lo_hi = f.get("intervals", {}).get("diverged_fraction")
     if k is None or not lo_hi or missing(lo_hi[1]):
-        return _fmt(k, "{:d}")
+        return fmt(k, "{:d}")
     lo, hi = (100.0 * v for v in lo_hi)
     return f"{k} ({lo:.2g}–{hi:.2g} %)"
 
-
-def _paired_cell(f, key) -> str:
+def paired_cell(f, key) -> str:
     pd = f.get("paired", {})
     c = pd.get(key)
     if c is None:
@@ -75,7 +68,6 @@ def _paired_cell(f, key) -> str:
         return "0 (identical)"
     cell = with_half_width(c["difference"], c["half_width"], sign=True)
     return cell if c["significant"] or cell == "—" else cell + " (n.s.)"
-
 
 def _columns(stats):
     p, v = stats.get("units", ("m", "m/s"))
@@ -97,16 +89,13 @@ def _columns(stats):
                     add(k2, t2, s2, w=w)
     return cols
 
-
 def _baseline(stats):
     return next((f["paired"]["baseline"] for f in stats["filters"].values() if "paired" in f), None)
-
 
 def _paired_column(stats, cols):
     """The key of the paired difference the table shows, and its column's title (None: none)."""
     have = {k for f in stats["filters"].values() for k in f.get("paired", {})}
     return next(((k, t) for k, t, _ in cols if k in PAIRED_COLUMNS and k in have), (None, None))
-
 
 def table_rows(stats):
     """The one-row-per-filter table: a number with an interval as ``value ± half-width``, the
@@ -124,16 +113,15 @@ def table_rows(stats):
         cells = []
         for k, _, spec in cols:
             if k == "diverged":
-                cells.append(_diverged_cell(f))
+                cells.append(diverged_cell(f))
             elif k in hw:
                 cells.append(with_half_width(f["summary"].get(k), hw[k], spec))
             else:
-                cells.append(_fmt(f["summary"].get(k), spec))
+                cells.append(fmt(f["summary"].get(k), spec))
             if k == paired_key and base is not None:
-                cells.append(_paired_cell(f, k))
+                cells.append(paired_cell(f, k))
         rows.append([label, f["kind"]] + cells)
     return header, rows
-
 
 def table_caption(stats) -> str:
     """What the table's ± and Δ mean (empty when it has no intervals)."""
@@ -157,7 +145,6 @@ def table_caption(stats) -> str:
                  f"(n.s.): not significant at {level:.0%}.")
     return text + auto_note(stats)
 
-
 def auto_note(stats) -> str:
     """How many runs ``runs = "auto"`` took and whether it met its target ("" for a fixed count)."""
     a = stats.get("auto")
@@ -167,11 +154,19 @@ def auto_note(stats) -> str:
             f"{a.get('statistic', 'position-RMSE')} interval within ± {100 * a['target']:g} % (at most {a['max_runs']})"
             + ("." if a["reached"] else "; the target was not reached."))
 
+def stored(v):
+    """A number as stats.json and table.csv keep it: 10 significant digits; NaN and infinities as None."""
+    if isinstance(v, (np.floating, float)):
+        v = float(v)
+        return float(f"{v:.10g}") if math.isfinite(v) else None  # 10 significant digits
+    if isinstance(v, (np.integer,)):
+        return int(v)
+    return v
+
 
 def md_cell(text) -> str:
     """A Markdown table cell: a '|' in a label is escaped, so it cannot start a new column."""
     return str(text).replace("\\", "\\\\").replace("|", "\\|")
-
 
 def markdown_table(stats) -> str:
     header, rows = table_rows(stats)
@@ -179,7 +174,6 @@ def markdown_table(stats) -> str:
     lines += ["| " + " | ".join(md_cell(c) for c in r) + " |" for r in rows]
     caption = table_caption(stats)
     return "\n".join(lines) + "\n" + (f"\n{caption}\n" if caption else "")
-
 
 def csv_table(stats) -> str:
     """Every column of the table as numbers: a value's half-width in ``<key>_hw``, the diverged
@@ -196,148 +190,12 @@ def csv_table(stats) -> str:
     w.writerow(["filter", "kind"] + keys + [f"{k}_hw" for k in hw_keys] + (["diverged_lo", "diverged_hi"] if intervals else [])
                + [c for k in paired for c in (f"delta_{k}", f"delta_{k}_hw")] + (["baseline"] if paired else []))
     for label, f in stats["filters"].items():
-        row = [label, f["kind"]] + [_json_num(f["summary"].get(k)) for k in keys]
-        row += [_json_num(f.get("half_width", {}).get(k)) for k in hw_keys]
+        row = [label, f["kind"]] + [stored(f["summary"].get(k)) for k in keys]
+        row += [stored(f.get("half_width", {}).get(k)) for k in hw_keys]
         if intervals:
-            row += [_json_num(v) for v in f.get("intervals", {}).get("diverged_fraction", [None, None])]
+            row += [stored(v) for v in f.get("intervals", {}).get("diverged_fraction", [None, None])]
         pd = f.get("paired", {})
-        row += [_json_num(pd.get(k, {}).get(c)) for k in paired for c in ("difference", "half_width")]
+        row += [stored(pd.get(k, {}).get(c)) for k in paired for c in ("difference", "half_width")]
         row += [pd.get("baseline")] if paired else []
         w.writerow(row)
     return buf.getvalue()
-
-
-def _json_num(v):
-    if isinstance(v, (np.floating, float)):
-        v = float(v)
-        return float(f"{v:.10g}") if math.isfinite(v) else None  # 10 significant digits
-    if isinstance(v, (np.integer,)):
-        return int(v)
-    return v
-
-
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {k: _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    return _json_num(obj)
-
-
-MAX_SERIES_POINTS = 2000  # longer runs are stored (and drawn) every `stride` steps
-
-
-def series_stride(steps):
-    return max(1, -(-steps // MAX_SERIES_POINTS))
-
-
-def _decimate(tree, stride):
-    if stride == 1:
-        return tree
-    if isinstance(tree, dict):
-        return {k: _decimate(v, stride) for k, v in tree.items()}
-    return np.asarray(tree)[stride - 1::stride]
-
-
-def stats_document(exp, res):
-    from tracklab import __version__
-
-    level = getattr(exp, "level", 0.95)
-    st = statistics(res, exp.window, exp.pred_windows, level, getattr(exp, "baseline", None))
-    ran = exp.ran_with()
-    stride = series_stride(res.steps)
-    st = {
-        "bounds": _decimate(st["bounds"], stride),
-        "filters": {k: dict(f, series=_decimate(f["series"], stride)) for k, f in st["filters"].items()},
-    }
-    return {
-        "name": exp.name,
-        "tracklab_version": __version__,
-        "runs": res.runs,
-        "steps": res.steps,
-        "dt": res.dt,
-        "window": list(exp.window),
-        "series_stride": stride,  # series hold steps stride, 2·stride, … (summaries use every step)
-        "axes": list(res.axes),  # names of the reporting frame's position axes
-        "units": list(res.units),  # of position and velocity
-        "windows": [w for w in exp.pred_windows if w != REPORT_WINDOW],  # named prediction-error windows
-        "level": level,  # of every interval: value ± half_width
-        "wall_s": res.wall_s,
-        "compile_s": res.compile_s,
-        "experiment": exp.raw,
-        "bounds": st["bounds"],
-        "example_run": _decimate(_example(exp, res), stride),
-        "filters": {
-            label: {"kind": f["kind"], "label": label, "params": ran.get(label, {}), "summary": f["summary"]}
-            | {k: f[k] for k in ("half_width", "intervals", "paired", "cdf") if k in f} | {"series": f["series"]}
-            for label, f in st["filters"].items()
-        },
-    } | ({"auto": res.auto} if getattr(res, "auto", None) else {})
-
-
-def results_path(exp, out=None) -> Path:
-    """Where an experiment's results go: ``out``, or results/<name>/."""
-    return Path(out) if out is not None else Path("results") / exp.name
-
-
-def run_into_folder(exp, out, runs, max_memory, simulate, write):
-    """What ``run`` is for every kind of experiment: the output folder and the memory need checked
-    before anything compiles, then ``simulate()``, then ``write(its result, folder)`` into a
-    temporary folder swapped in whole; returns what ``write`` returns (the statistics). In a run of
-    several processes every one checks and simulates, and process 0 alone writes (the others
-    return None)."""
-    from tracklab.output import atomic_folder, check_results_folder
-    from tracklab.runtime import writes
-
-    file = exp.path if exp.path is not None else "tracklab.experiment"  # what a refusal names
-    out = check_results_folder(results_path(exp, out), file)
-    exp.check_memory(runs, max_memory)
-    result = simulate()
-    if not writes():
-        return None
-    with atomic_folder(out, file) as tmp:
-        return write(result, tmp)
-
-
-def _example(exp, res):
-    """Run 0 in CV layout: truth, each filter's estimates and (Cartesian sensors) the measurements."""
-    ex = res.example
-    if not ex:
-        return {}
-    doc = {"truth": ex["truth"][1:], "estimates": ex["x"]}
-    if ex.get("var"):  # each filter's own standard deviations of its errors, for the ±3σ envelope
-        doc["sd"] = {k: np.sqrt(np.maximum(np.asarray(v, float), 0.0)) for k, v in ex["var"].items()}
-    kinds = [s.kind for s in exp.sensor.sensors] if exp.sensor is not None else []
-    if len(kinds) == 1 and kinds[0] in ("cartesian", "mount"):
-        doc["measurements"] = ex["z"]
-    return doc
-
-
-def write_json(path: Path, doc):
-    """Compact JSON, NaN and infinities as null, floats to 10 significant digits; tracklab's
-    header (its version) first, which marks the folder as tracklab's (``tracklab.output``)."""
-    from tracklab import __version__
-    from tracklab.output import HEADER_KEY
-
-    doc = {HEADER_KEY: __version__} | dict(doc)
-    path.write_text(json.dumps(_jsonable(doc), separators=(",", ":"), allow_nan=False) + "\n")
-
-
-def write_tables(folder: Path, doc, table_md=None):
-    """stats.json, table.md (``table_md``, default the one-row-per-filter table) and table.csv."""
-    write_json(folder / "stats.json", doc)
-    (folder / "table.md").write_text(markdown_table(doc) if table_md is None else table_md)
-    (folder / "table.csv").write_text(csv_table(doc))
-
-
-def write_results(exp, res, folder: Path, figures=True):
-    """Write the statistics document, tables and figures into ``folder``; return the document."""
-    doc = stats_document(exp, res)
-    write_tables(folder, doc)
-    if figures:
-        from tracklab.figures import plot_figures
-
-        plot_figures(doc, folder)
-    return doc

@@ -34,7 +34,7 @@ import jax.numpy as jnp
 
 from tracklab.filters.core import Prior
 from tracklab.montecarlo import runner
-from tracklab.servo.loops import AzimuthAxis, dekf_estimator, kalman_estimator, sine_target, track
+from tracklab.worlds.servo.loops import AzimuthAxis, dekf_estimator, kalman_estimator, sine_target, track
 
 LOST = 180.0  # deg: a run whose tracking error passes half a turn has lost the target (diverged)
 

@@ -1,0 +1,251 @@
+"""The open-loop world's errors and sums: a filter's output at a step against the truth.
+
+Per run and step (``error_inputs`` picked inside the filter's step, ``errors_of`` for all the
+filters of the same shapes at once): the estimation error in the CV layout, NEES, NIS and
+log det S, the one-step prediction error, the filter's own variances, and whether the run
+turned bad (NaN/inf, a covariance not positive definite). Per step, over the runs of a chunk:
+the sums and maxima of ``SUMS`` and ``MAXIMA`` (``lane_sums``: one variadic reduction per row
+height, ``sum_over_runs``), cut into named quantities after the chunk (``named``, ``unpack``).
+Per run, over the report windows: the samples of ``sample_names`` behind the intervals
+(``run_samples``). The losses ``tracklab tune`` minimises (``LOSSES``) read the sums.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.extend
+import jax.numpy as jnp
+import numpy as np
+
+from tracklab.montecarlo.statistics import REPORT_WINDOW
+from tracklab.linalg import mahalanobis2, mahalanobis2_logdet, norm, sum_elements
+
+
+class RunErrors(NamedTuple):
+    """One filter's errors at one step, per run (under ``vmap`` with runs last: (…, runs))."""
+
+    e: Any  # (2d,) estimate minus truth, CV layout
+    nees: Any
+    nis: Any  # 0 where no update
+    valid: Any  # bool: an update happened
+    dof: Any  # innovation components used
+    bad: Any  # bool: NaN/inf estimate, NEES or NIS
+    logdet_s: Any  # log det S, 0 where no update
+    e_pred: Any  # (d,) one-step position prediction error
+    var: Any  # (2d,) the filter's own variances of e (the diagonal of its covariance), CV layout
+
+    @classmethod
+    def zeros(cls, d, B, dtype):
+        """In the place of the errors before the first step (the scan's first carry)."""
+        z = lambda *shape: jnp.zeros(shape + (B,), dtype)
+        no = jnp.zeros((B,), bool)
+        return cls(z(2 * d), z(), z(), no, z(), no, z(), z(d), z(2 * d))
+
+def pick(a, idx, axis=0):
+    """``a``'s entries ``idx`` (known at trace time) along ``axis`` by static slices, which fuse
+    with what reads them (indexing by an index array is a gather, a kernel of its own)."""
+    idx = [int(i) for i in idx]
+    if idx == list(range(idx[0], idx[0] + len(idx))):
+        return jax.lax.slice_in_dim(a, idx[0], idx[0] + len(idx), axis=axis)
+    return jnp.stack([jax.lax.index_in_dim(a, i, axis, keepdims=False) for i in idx], axis=axis)
+
+class ErrorInputs(NamedTuple):
+    """What a filter's output at one step gives its errors (one run): picked in the filter's
+    step, turned into errors (``errors_of``) for all the filters of the same shapes at once."""
+
+    e: Any  # (2d,) estimate minus truth, CV layout
+    Pe: Any  # (2d, 2d) the filter's covariance of e
+    x_sum: Any  # the sum of the state's entries (NaN/inf when any is)
+    nu: Any  # innovation, or None
+    S: Any  # its covariance, or None
+    valid: Any  # bool: an update happened
+    dof: Any  # innovation components used
+    e_pred: Any  # (d,) one-step position prediction error (NaN when the filter reports none)
+
+def error_inputs(out, truth_k, pv, dtype) -> ErrorInputs:
+    """One run's ``ErrorInputs`` at one step from a filter's output ``out`` (an ``Out``), the
+    true state ``truth_k`` (2d,) in CV layout and ``pv``, the indices of [x, ẋ, y, ẏ, …] in its state."""
+    e = pick(out.x, pv) - truth_k
+    Pe = pick(pick(out.P, pv), pv, axis=1)
+    nu = S = None
+    valid, dof = jnp.asarray(False), jnp.asarray(0.0, dtype)
+    if out.nu is not None and out.S is not None:
+        nu, S = out.nu, out.S
+        valid = jnp.asarray(True if out.valid is None else out.valid, bool)
+        dof = jnp.asarray(out.nu.shape[-1] if out.dof is None else out.dof, dtype)
+    if out.x_pred is not None:
+        e_pred = pick(out.x_pred, pv[0::2]) - truth_k[0::2]
+    else:  # no prediction reported: its statistics are NaN, shown as missing
+        e_pred = jnp.full((len(pv) // 2,), jnp.nan, dtype)
+    return ErrorInputs(e, Pe, sum_elements(out.x), nu, S, valid, dof, e_pred)
+
+def errors_of(a: ErrorInputs, dtype) -> RunErrors:
+    """One run's errors from its ``ErrorInputs``."""
+    nees = mahalanobis2(a.Pe, a.e)  # NaN when P is not positive definite
+    bad = ~jnp.isfinite(nees + a.x_sum)
+    if a.nu is not None:
+        nis, logdet_s = mahalanobis2_logdet(a.S, a.nu)
+        nis = jnp.where(a.valid, nis, 0.0)
+        logdet_s = jnp.where(a.valid, logdet_s, 0.0)
+        bad = bad | (a.valid & ~jnp.isfinite(nis))
+    else:  # no innovation reported: no NIS (its columns are empty)
+        nis, logdet_s = 0.0, 0.0
+    # fixed dtypes, so that the scan's carry is known without tracing the step (RunErrors.zeros)
+    f = lambda v: jnp.asarray(v, dtype)
+    return RunErrors(f(a.e), f(nees), f(nis), jnp.asarray(a.valid, bool), f(a.dof), bad, f(logdet_s), f(a.e_pred),
+                      f(jnp.diagonal(a.Pe)))
+
+def run_errors(out, truth_k, pv, dtype) -> RunErrors:
+    """One run's errors at one step from a filter's output ``out`` (see ``error_inputs``)."""
+    return errors_of(error_inputs(out, truth_k, pv, dtype), dtype)
+
+def with_errors(body, dtype):
+    """A filter's one-run step returning its errors (``errors_of``) instead of their inputs."""
+
+    def step(state, inp):
+        state, inputs = body(state, inp)
+        return state, errors_of(inputs, dtype)
+
+    return step
+
+# a step's sums over the runs and maxima over the runs, each one vector per filter inside the
+# scan (one reduction each, one output each), cut into the named quantities after it
+SUMS = ("count", "sum_pos", "sum_vel", "sumsq_pos", "sumsq_vel", "sum_nees", "sum_nis", "count_nis", "dof_nis",
+         "sum_logdet_s", "sum_pred", "sumsq_pred", "sum4_pos", "sum4_vel", "sumsq2_pos", "sumsq2_vel")
+
+MAXIMA = ("max_abs_pos", "max_abs_vel", "max_err_pos", "max_err_vel")
+
+PER_RUN_SCALARS = {"count", "sum_nees", "sum_nis", "count_nis", "dof_nis", "sum_logdet_s", "max_err_pos", "max_err_vel",
+                    "sumsq2_pos", "sumsq2_vel"}
+
+def sample_names(d: int, windows) -> list[tuple[str, int]]:
+    """The per-run samples of a filter (name, width), in order: over the report window its
+    mean-square position and velocity error (total, then per axis), mean error per axis
+    (position, velocity), mean NEES, mean NIS and updates per step (the NIS is their ratio);
+    per named window the mean-square one-step prediction error (total, per axis); then per
+    named window the run's largest prediction error (per axis, then the norm)."""
+    names = [("sq_pos", 1), ("sq_vel", 1), ("sq_pos_axes", d), ("err_pos", d), ("err_vel", d), ("nees", 1),
+             ("nis", 1), ("updates", 1)]
+    for w in windows:
+        names += [(f"sq_pred@{w}", 1), (f"sq_pred_axes@{w}", d)]
+    return names + [(f"max_pred@{w}", d + 1) for w in windows]
+
+def accumulated_lengths(d: int, windows: dict) -> np.ndarray:
+    """Per accumulated sample (all of ``sample_names`` but the maxima), the steps of its window:
+    what a run's window sum is divided by."""
+    names = [(n, w) for n, w in sample_names(d, windows) if not n.startswith("max_pred@")]
+    return np.concatenate([np.full(w, windows[n.split("@")[1] if "@" in n else REPORT_WINDOW].sum()) for n, w in names])
+
+def run_samples(r: RunErrors, w_k):
+    """One step's contributions (Q, B) to each run's sums of the accumulated samples (all of
+    ``sample_names`` but the maxima): ``w_k`` (windows,) whether the step is in each named
+    window, the report window first (``with_report_window``)."""
+    w_report = w_k[0]
+    ep, ev = r.e[0::2], r.e[1::2]
+    upd = r.valid.astype(ep.dtype)
+    sq_pred = r.e_pred**2
+    report = jnp.concatenate([jnp.sum(ep**2, 0)[None], jnp.sum(ev**2, 0)[None], ep**2, ep, ev, r.nees[None],
+                              (r.nis * upd)[None], upd[None]])
+    rows = [w_report * report]
+    for j in range(w_k.shape[0]):
+        rows.append(w_k[j] * jnp.concatenate([jnp.sum(sq_pred, 0)[None], sq_pred]))
+    return jnp.concatenate(rows)
+
+def lane_sums(r: RunErrors, ok, runmax, w_k, dtype):
+    """One step's sums over the runs ``ok`` (B,) of one filter's per-run errors (runs last): the
+    vectors of ``SUMS`` and of ``MAXIMA`` (see ``named``), and the updated per-run maxima."""
+    okf = ok.astype(dtype)
+    e = jnp.where(ok, r.e, 0.0)  # (2d, B)
+    ep, ev = e[0::2], e[1::2]
+    e_pred = jnp.where(ok, r.e_pred, 0.0)  # (d, B)
+    updf = (r.valid & ok).astype(dtype)
+    a_pred = jnp.concatenate([jnp.abs(e_pred), norm(e_pred)[None]])  # (d + 1, B)
+    runmax = jnp.where(w_k[:, None, None], jnp.maximum(runmax, a_pred[None]), runmax)
+    add = {
+        "count": okf[None],
+        "sum_pos": ep,
+        "sum_vel": ev,
+        "sumsq_pos": ep**2,
+        "sumsq_vel": ev**2,
+        "sum_nees": jnp.where(ok, r.nees, 0.0)[None],
+        "sum_nis": (jnp.where(ok, r.nis, 0.0) * updf)[None],
+        "count_nis": updf[None],
+        "dof_nis": (r.dof * updf)[None],
+        "sum_logdet_s": (jnp.where(ok, r.logdet_s, 0.0) * updf)[None],
+        "sum_pred": e_pred,  # one-step prediction error, per axis
+        "sumsq_pred": e_pred**2,
+        "sum4_pos": ep**4,  # for the per-step RMSE's interval
+        "sum4_vel": ev**4,
+        "sumsq2_pos": jnp.sum(ep**2, 0)[None] ** 2,
+        "sumsq2_vel": jnp.sum(ev**2, 0)[None] ** 2,
+    }
+    top = {
+        "max_abs_pos": jnp.abs(ep),
+        "max_abs_vel": jnp.abs(ev),
+        "max_err_pos": norm(ep)[None],
+        "max_err_vel": norm(ev)[None],
+    }
+    sums = sum_over_runs([add[n] for n in SUMS])
+    maxima = jnp.max(jnp.where(ok, jnp.concatenate([top[n] for n in MAXIMA]), -jnp.inf), axis=-1)
+    return sums, maxima, runmax
+
+@jax.custom_jvp
+def sum_over_runs(rows):
+    """``rows`` (each (k, B)) summed over the runs, concatenated: (Σk,). One variadic reduction
+    per row height, into which XLA fuses the arithmetic that makes the rows: a reduction of
+    their concatenation would first write every row out, a kernel each. (A variadic reduction
+    has no derivative rule of its own: the tangents are summed row by row.)"""
+    by_height: dict = {}
+    for i, a in enumerate(rows):
+        by_height.setdefault(a.shape[0], []).append(i)
+    out = [None] * len(rows)
+    for idx in by_height.values():
+        zeros = tuple(jnp.zeros((), rows[i].dtype) for i in idx)
+        summed = jax.lax.reduce(tuple(rows[i] for i in idx), zeros,
+                                lambda a, b: tuple(jax.lax.add(x, y) for x, y in zip(a, b)), (1,))
+        for i, v in zip(idx, summed):
+            out[i] = v
+    return jnp.concatenate(out)
+
+@sum_over_runs.defjvp
+def _sum_over_runs_jvp(primals, tangents):
+    (rows,), (d_rows,) = primals, tangents
+    return sum_over_runs(rows), jnp.concatenate([jnp.sum(t, axis=-1) for t in d_rows])
+
+def named(v, names, d):
+    """Vectors (..., width) of ``lane_sums`` cut into the named quantities along the last axis
+    (a per-run scalar's sum one column, the others d columns)."""
+    out, i = {}, 0
+    for name in names:
+        if name in PER_RUN_SCALARS:
+            out[name], i = v[..., i], i + 1
+        else:
+            out[name], i = v[..., i:i + d], i + d
+    return out
+
+def unpack(out, d):
+    """Each filter's per-step sums and maxima as named arrays, from the two vectors per step that
+    the scan writes (``lane_sums``); the leading axes (steps, grid points) are kept. Cut after
+    the compiled chunk, each part is not an output buffer and a kernel of its own."""
+    res = dict(out)
+    for label, v in out.items():
+        if isinstance(v, dict) and "sums" in v:
+            v = dict(v)
+            res[label] = named(v.pop("sums"), SUMS, d) | named(v.pop("maxima"), MAXIMA, d) | v
+    return res
+
+def _window_mean(x, window):
+    a, b = window
+    return jnp.mean(x[a - 1:b])
+
+def _safe_div(a, b):
+    return a / jnp.maximum(b, 1.0)
+
+# what tuning may minimise, from one chunk's sums, time-averaged over the report window ``w``
+LOSSES: dict[str, Callable] = {
+    "mse_pos": lambda s, w: _window_mean(_safe_div(jnp.sum(s["sumsq_pos"], -1), s["count"]), w),
+    "pred_mse": lambda s, w: _window_mean(_safe_div(jnp.sum(s["sumsq_pred"], axis=-1), s["count"]), w),
+    "nll": lambda s, w: _window_mean(0.5 * _safe_div(s["sum_nis"] + s["sum_logdet_s"], s["count_nis"]), w),
+}

@@ -1,0 +1,117 @@
+"""The open-loop world's outcome: ``MonteCarloResult``, the per-step sums of every filter over
+the runs with run 0's example, the runs' samples and the PCRLB; ``run`` (through the runner)
+and ``monte_carlo`` (filters of one's own from Python).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from tracklab.intervals import LEVEL, precision_reached
+from tracklab.montecarlo.statistics import REPORT_WINDOW
+from tracklab.montecarlo import runner
+from tracklab.sensors import SensorSuite
+from tracklab.montecarlo.pcrlb import pcrlb64
+from tracklab.worlds.tracking.scan import (TrackingParams, TrackingStructure, default_chunk, windows_of, with_report_window,
+                                              world)
+from tracklab.worlds.tracking.errors import sample_names, unpack
+from tracklab.worlds.tracking.lanes import FilterSpec
+
+
+@dataclass
+class MonteCarloResult:
+    runs: int
+    steps: int
+    dt: float
+    dim: int
+    sums: dict[str, dict[str, np.ndarray]]  # label -> name -> (T, ...)
+    pcrlb: np.ndarray | None  # (T, 2·dim, 2·dim) bound on the CV-layout state, or None
+    wall_s: float
+    compile_s: float
+    labels: list[str]
+    kinds: dict[str, str]
+    example: dict = field(default_factory=dict)  # run 0: truth, z, and each filter's estimates
+    axes: tuple[str, ...] = ("x", "y", "z")  # names of the reporting frame's position axes
+    units: tuple[str, str] = ("m", "m/s")  # of position and velocity
+    windows: list[str] = field(default_factory=list)  # named windows of the prediction-error maxima
+    samples: Any = None  # the per-run samples' moments (montecarlo.samples.RunSamples), lanes in ``labels`` order
+    sample_names: list = field(default_factory=list)  # (name, width) of each lane's samples (``sample_names``)
+    report_window: tuple[int, int] | None = None  # 1-based steps the samples average over
+    auto: dict | None = None  # runs chosen by a target precision: {target, max_runs, reached}
+
+def run(structure: TrackingStructure, params: TrackingParams, runs: int, key, *, progress=None,
+        precision: str = "float64", points: int | None = None, target: float | None = None, level: float = LEVEL):
+    """Per-step error statistics of the structure's filters over ``runs`` Monte-Carlo runs: a
+    ``MonteCarloResult``, or with ``points`` (params stacked along a leading axis, as a sweep's
+    grid) a list of them, one per parameter set, all on the same runs. With ``target``, chunks
+    run until ``precision_reached`` (``runs`` at most): the result's ``auto`` says how it went."""
+    enough = None
+    if target is not None and points is None:
+        enough = lambda sums, samples, done: precision_reached(samples, target, level)
+    out = runner.run(world(structure), params, runs, key, precision=precision, points=points, progress=progress,
+                     enough=enough)
+    if points is None:
+        res = result(structure, params, out.sums, out)
+        if target is not None:
+            res.auto = {"target": target, "max_runs": runs, "reached": precision_reached(out.samples, target, level)}
+        return res
+    return [result(structure, runner.pick(params, j), runner.pick(out.sums, j), out, j) for j in range(points)]
+
+def result(structure, params, sums, out: runner.Outcome, point: int | None = None) -> MonteCarloResult:
+    """The ``MonteCarloResult`` of one parameter set's sums (the runner's, for ``out.runs`` runs;
+    ``point``: which grid point's samples, when the run had several)."""
+    scenario = params.scenario
+    sums = unpack(sums, scenario.dim)
+    info = sums.pop("_info")
+    ex = sums.pop("_example")
+    example = {"truth": np.asarray(ex["truth"]), "z": np.asarray(ex["z"])}
+    example["x"] = {label: np.asarray(sums[label].pop("example_x")) for label in structure.labels}
+    example["var"] = {label: np.asarray(sums[label].pop("example_var")) for label in structure.labels}
+    windows = with_report_window(structure.window_masks(), scenario.steps)
+    report = np.flatnonzero(windows[REPORT_WINDOW])
+    samples = out.samples if (point is None or out.samples is None) else out.samples.point(point)
+    return MonteCarloResult(
+        runs=out.runs, steps=scenario.steps, dt=float(scenario.dt), dim=scenario.dim,
+        sums={label: sums[label] for label in structure.labels},
+        pcrlb=pcrlb64(scenario, np.asarray(params.P0, np.float64), info / out.runs) if scenario.gaussian else None,
+        wall_s=out.wall_s, compile_s=out.compile_s, labels=structure.labels,
+        kinds={f.label: f.kind for f in structure.filters}, example=example,
+        axes=tuple(getattr(scenario, "axes", ("x", "y", "z")[: scenario.dim])),
+        units=tuple(getattr(scenario, "units", ("m", "m/s"))), windows=[n for n, _ in structure.windows],
+        samples=samples, sample_names=sample_names(scenario.dim, windows),
+        report_window=(int(report[0]) + 1, int(report[-1]) + 1))
+
+def monte_carlo(
+    scenario,
+    sensor,
+    specs: Sequence[FilterSpec],
+    runs: int,
+    key,
+    P0_cv,
+    *,
+    chunk: int | None = None,
+    params: Sequence[Any] | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    precision: str = "float64",
+    windows: dict[str, np.ndarray] | None = None,
+) -> MonteCarloResult:
+    """Per-step error statistics of several filters over ``runs`` Monte-Carlo runs.
+
+    ``P0_cv`` is the prior covariance in CV layout: run i's prior mean is the
+    truth one period before the first measurement plus a N(0, P0) draw, shared
+    by all filters in that run. ``precision = "float32"`` traces and runs the
+    simulation and the filters in single precision (JAX's 64-bit mode off for
+    them); sums are accumulated on the host in float64 either way, and the
+    random draws are the same (made in float32 in both). ``windows`` (name -> (steps,)
+    bool mask) are where each run's largest one-step prediction error is taken.
+    """
+    if not isinstance(sensor, SensorSuite):
+        sensor = SensorSuite((sensor,))
+    chunk = int(chunk or default_chunk(scenario, sensor, runs=runs))
+    structure = TrackingStructure(tuple(specs), windows_of(windows), chunk)
+    filter_params = list(params) if params is not None else [s.filter.params for s in specs]
+    p = TrackingParams(scenario, sensor, np.asarray(P0_cv, float), 0.0, filter_params)
+    return run(structure, p, runs, key, progress=progress, precision=precision)
