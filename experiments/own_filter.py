@@ -1,17 +1,18 @@
 """A filter of one's own for experiments/own_filter.toml (kind = "own_filter:converted_kf").
 
-A converted-measurement Kalman filter written from scratch with jax.numpy, on the state
-[x, y, ẋ, ẏ] (not tracklab's interleaved layout): the range-bearing measurement is turned
+A converted-measurement Kalman filter on the state [x, y, ẋ, ẏ] (not tracklab's interleaved
+layout), written with tracklab's building blocks: the range-bearing measurement is turned
 into a Cartesian position with the covariance J R Jᵀ linearised at the measurement (Zhang
-Yujun et al., "Study on high accuracy tracking target in lidar", eq. 12), and the update is
-in Joseph form. Its maths is the built-in ``cmkf``'s; the README's "Your own filter"
-shows it run from Python and tuned.
+Yujun et al., "Study on high accuracy tracking target in lidar", eq. 12), then ``update``
+does the rest (Joseph form). Its maths is the built-in ``cmkf``'s; the README's "Your own
+filter" shows it run from Python and tuned.
 """
 
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab import Filter, Layout, Out
+from tracklab import Layout
+from tracklab.filters import kalman_filter, predict, update
 
 
 def converted_kf(context, accel_var=None, r=None):
@@ -26,25 +27,14 @@ def converted_kf(context, accel_var=None, r=None):
     G = jnp.array([[dt**2 / 2, 0], [0, dt**2 / 2], [dt, 0], [0, dt]])
     H = jnp.eye(2, 4)
 
-    def init(params, prior):  # the prior arrives in this filter's layout
-        return prior.x, prior.P
+    def time_update(params, g):  # g: Gaussian(x, P)
+        return predict(g, F, params["accel_var"] * G @ G.T)
 
-    def step(params, state, meas):
-        x, P = state
-        x_pred = F @ x
-        P_pred = F @ P @ F.T + params["accel_var"] * G @ G.T
-        have = meas.valid & jnp.all(jnp.isfinite(meas.z))
-        rng, brg = jnp.where(have, meas.z, jnp.array([1.0, 0.0]))
+    def measurement_update(params, g, z, present):  # z = (range, bearing), an absent component 0
+        rng, brg = z
         J = jnp.array([[jnp.cos(brg), -rng * jnp.sin(brg)], [jnp.sin(brg), rng * jnp.cos(brg)]])
-        Rc = J @ jnp.diag(params["r"]) @ J.T
-        nu = jnp.array([rng * jnp.cos(brg), rng * jnp.sin(brg)]) - H @ x_pred
-        S = H @ P_pred @ H.T + Rc
-        K = jnp.linalg.solve(S, H @ P_pred).T  # P Hᵀ S⁻¹ (S and P symmetric)
-        A = jnp.eye(4) - K @ H
-        x_new = jnp.where(have, x_pred + K @ nu, x_pred)
-        P_new = jnp.where(have, A @ P_pred @ A.T + K @ Rc @ K.T, P_pred)
-        out = Out(x=x_new, P=P_new, x_pred=x_pred, nu=jnp.where(have, nu, 0.0), S=S, valid=have,
-                  dof=jnp.where(have, 2, 0))
-        return (x_new, P_new), out
+        pos = jnp.array([rng * jnp.cos(brg), rng * jnp.sin(brg)])
+        both = jnp.full(2, jnp.all(present))  # the conversion needs range and bearing
+        return update(g, pos, H, J @ jnp.diag(params["r"]) @ J.T, present=both)
 
-    return Filter(init, step, params, layout=Layout(n=4, pos_idx=(0, 1), vel_idx=(2, 3)))
+    return kalman_filter(params, time_update, measurement_update, layout=Layout(n=4, pos_idx=(0, 1), vel_idx=(2, 3)))

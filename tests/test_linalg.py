@@ -4,8 +4,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from tracklab.filters.core import symmetrise
-from tracklab.linalg import expm, host_expm, jacobian, mm, solve
+from tracklab.linalg import expm, host_expm, jacobian, mm, solve, symmetrise
 from tracklab.models import cv
 
 

@@ -1,4 +1,5 @@
-"""Filters: pure ``init``/``step`` pairs over pytrees (see ``core``).
+"""Filters: pure ``init``/``step`` pairs over pytrees (see ``core``), and the blocks they are
+written with (``blocks``: predict, update, ekf_update, kalman_filter, …).
 
 The kinds an experiment file names are declared beside their code (``kind.FilterKind``)
 and collected in ``registry.KINDS``; ``build`` makes one.
@@ -12,10 +13,22 @@ from tracklab.filters.alphabeta import (
     model_alpha_beta,
     tracking_index,
 )
-from tracklab.filters.core import Filter, Gaussian, Meas, Out, Prior, kalman_update, wrap_angle
+from tracklab.filters.blocks import (
+    Gaussian,
+    Update,
+    ekf_predict,
+    ekf_update,
+    innovation,
+    innovation_update,
+    joseph_covariance,
+    kalman_filter,
+    predict,
+    update,
+    wrap_angle,
+)
+from tracklab.filters.core import Filter, Meas, Out, Prior, masked_meas
 from tracklab.filters.kalman import (
     ekf,
-    gaussian_filter,
     kf,
     model_cmkf,
     model_ekf,
@@ -41,8 +54,9 @@ def build(kind, model, sensor, params, options=None) -> Filter:
 
 
 __all__ = [
-    "Filter", "FilterKind", "Gaussian", "KINDS", "Meas", "Out", "Param", "Prior", "build", "ekf", "gaussian_filter",
-    "growing_memory_alpha_beta", "growing_memory_alpha_beta_gamma", "kalata_alpha_beta", "kalata_alpha_beta_gamma",
-    "imm_params", "kalman_update", "kf", "model_alpha_beta", "model_error_space", "model_imm", "model_stf", "model_ukf", "noise_params",
-    "strong_tracking", "tracking_index", "wrap_angle",
+    "Filter", "FilterKind", "Gaussian", "KINDS", "Meas", "Out", "Param", "Prior", "Update", "build", "ekf", "ekf_predict",
+    "ekf_update", "growing_memory_alpha_beta", "growing_memory_alpha_beta_gamma", "imm_params", "innovation",
+    "innovation_update", "joseph_covariance", "kalata_alpha_beta", "kalata_alpha_beta_gamma", "kalman_filter", "kf",
+    "masked_meas", "model_alpha_beta", "model_error_space", "model_imm", "model_stf", "model_ukf", "noise_params", "predict",
+    "strong_tracking", "tracking_index", "update", "wrap_angle",
 ]

@@ -29,7 +29,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab.filters.core import Filter, Out, masked_meas, select, symmetrise
+from tracklab.filters.blocks import Gaussian, joseph_covariance, predict
+from tracklab.filters.core import Filter, Out, masked_meas, select
 from tracklab.filters.kind import NOISE, Constraint, Entry, FilterKind, Param, noise, positive, stable_gains, write_value
 from tracklab.linalg import mm
 from tracklab.sensors import CONVERSIONS
@@ -138,11 +139,11 @@ def model_alpha_beta(model, sensor, params, gains="kalata", floor=None, conversi
     def init(p, prior):
         return ABState(jnp.asarray(prior.x), jnp.asarray(prior.P), jnp.zeros((), jnp.asarray(prior.x).dtype))
 
-    def predict(p, s):
-        return mm(F, s.x), symmetrise(mm(mm(F, s.P), F.T) + model.Q(p["q"]))
+    def time_update(p, s):
+        return predict(Gaussian(s.x, s.P), F, model.Q(p["q"]))
 
     def coast(p, s, meas):
-        x_pred, P_pred = predict(p, s)
+        x_pred, P_pred = time_update(p, s)
         none = jnp.zeros((dim,), bool)
         out = Out(x=x_pred, P=P_pred, x_pred=x_pred, nu=jnp.zeros((dim,), x_pred.dtype),
                   S=jnp.eye(dim, dtype=x_pred.dtype), valid=jnp.any(none), dof=jnp.sum(none))
@@ -150,7 +151,7 @@ def model_alpha_beta(model, sensor, params, gains="kalata", floor=None, conversi
 
     def step(p, s, meas):
         z, present = masked_meas(meas)
-        x_pred, P_pred = predict(p, s)
+        x_pred, P_pred = time_update(p, s)
         if convert is None:
             zc, Rc, used = z, jnp.diag(jnp.broadcast_to(p["r"], (dim,))), present
         else:
@@ -161,9 +162,8 @@ def model_alpha_beta(model, sensor, params, gains="kalata", floor=None, conversi
         K = gain_matrix(order, dim, T, current_gains(p, k)) * used[None, :]
         nu = jnp.where(used, zc - mm(H, x_pred), 0.0)
         x = x_pred + mm(K, nu)
-        IKH = jnp.eye(model.n, dtype=x.dtype) - mm(K, H)
         Ru = jnp.where(used[:, None] & used[None, :], Rc, jnp.eye(dim, dtype=x.dtype))
-        P = symmetrise(mm(mm(IKH, P_pred), IKH.T) + mm(mm(K, Ru), K.T))
+        P = joseph_covariance(P_pred, K, H, Ru)  # with the gain actually used
         S = jnp.where(used[:, None] & used[None, :], mm(mm(H, P_pred), H.T) + Ru, Ru)
         post = select(valid, ABState(x, P, k), ABState(x_pred, P_pred, s.k))
         out = Out(x=post.x, P=post.P, x_pred=x_pred, nu=nu, S=S, valid=valid, dof=jnp.sum(used))

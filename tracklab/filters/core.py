@@ -1,4 +1,4 @@
-"""The filter contract and the Kalman update shared by every Gaussian filter.
+"""The filter contract: what a filter is, what it receives and what it reports.
 
 A filter is a small immutable bundle of pure functions over pytrees, in the
 spirit of optax's ``GradientTransformation``::
@@ -8,7 +8,7 @@ spirit of optax's ``GradientTransformation``::
 
 ``flt.params`` holds the default parameters (a pytree of arrays: what
 ``jax.grad`` and optax see). Static structure (dimensions, model choice) lives
-in the closures.
+in the closures. The Gaussian predict/update algebra to write one with is ``blocks``.
 """
 
 from __future__ import annotations
@@ -19,8 +19,6 @@ import jax
 import jax.numpy as jnp
 
 from tracklab.errors import first_line
-from tracklab.linalg import mm, spd_inverse, symmetrise
-from tracklab.sensors.geometry import wrap
 
 
 class Prior(NamedTuple):
@@ -95,50 +93,6 @@ class Filter(NamedTuple):
     params: Any
     coast: Callable[[Any, Any, Meas], tuple[Any, Out]] | None = None
     layout: Any = None
-
-
-class Gaussian(NamedTuple):
-    """The state of every Kalman-type filter here: mean and covariance."""
-
-    x: jax.Array
-    P: jax.Array
-
-
-def kalman_update(x, P, nu, H, R):
-    """Kalman measurement update in Joseph form; returns (x, P, S)."""
-    PHt = mm(P, H.T)
-    S = mm(H, PHt) + R
-    K = mm(PHt, spd_inverse(S))  # K = P Hᵀ S⁻¹
-    x = x + mm(K, nu)
-    IKH = jnp.eye(P.shape[-1], dtype=P.dtype) - mm(K, H)
-    P = mm(mm(IKH, P), IKH.T) + mm(mm(K, R), K.T)
-    return x, symmetrise(P), S
-
-
-def masked_kalman_update(x, P, nu, H, R, used):
-    """Kalman update with only the ``used`` measurement components (a bool vector).
-
-    Unused rows of H and components of ν are zeroed and their R entries replaced
-    by an uncoupled unit variance, so they change neither the mean nor the
-    covariance: a partial measurement (one sensor of several reporting) is an
-    update with the components that are there.
-    """
-    H = jnp.where(used[:, None], H, 0.0)
-    nu = jnp.where(used, nu, 0.0)
-    R = jnp.where(used[:, None] & used[None, :], R, jnp.eye(R.shape[-1], dtype=R.dtype))
-    x, P, S = kalman_update(x, P, nu, H, R)
-    return x, P, nu, S
-
-
-wrap_angle = wrap  # wrap to (-π, π]
-
-
-def wrap_components(nu, angle_mask):
-    """Wrap the innovation components flagged by a static boolean mask."""
-    if angle_mask is None or not any(angle_mask):
-        return nu
-    mask = jnp.asarray(angle_mask)
-    return jnp.where(mask, wrap_angle(nu), nu)
 
 
 def select(valid, a, b):

@@ -42,7 +42,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab.filters.core import Filter, Out, masked_kalman_update, masked_meas, symmetrise
+from tracklab.filters.blocks import Gaussian, innovation_update, predict
+from tracklab.filters.core import Filter, Out, masked_meas
 from tracklab.filters.kind import (MEASUREMENT_NOISE, PROCESS_NOISE, Entry, FilterKind, Param, free, noise, positive,
                                    unit_interval)
 from tracklab.linalg import mm
@@ -130,18 +131,15 @@ def dual_ekf(net: Network, params) -> Filter:
         Pw_pred = s.Pw / p["forget"]  # forgetting
         x_pred = net_p(s.x, s.w)
         A = jax.jacfwd(net_p, argnums=0)(s.x, s.w)
-        Q = p["q"] * jnp.outer(G, G)
-        P_pred = symmetrise(mm(mm(A, s.P), A.T) + Q)
-        nu = z - mm(C, x_pred)
-        R = jnp.reshape(p["r"], (1, 1))
-        x, P, nu_used, S = masked_kalman_update(x_pred, P_pred, nu, C, R, present)
+        pred = predict(Gaussian(s.x, s.P), A, p["q"] * jnp.outer(G, G), f_x=x_pred)
+        nu = z - mm(C, pred.x)
+        u = innovation_update(pred, nu, C, jnp.reshape(p["r"], (1, 1)), present=present)
         # weight filter, on the same innovation (eqs. 13-15)
         Cw = mm(C, jax.jacfwd(net_p, argnums=1)(s.x, s.w))  # (1, n_w)
-        Re = jnp.reshape(p["r_e"], (1, 1))
-        w, Pw, _, _ = masked_kalman_update(s.w, Pw_pred, nu, Cw, Re, present)
-        out = Out(x=x, P=P, x_pred=x_pred, nu=nu_used, S=S, valid=jnp.any(present), dof=jnp.sum(present),
-                  aux={"weights": w})
-        return DekfState(x, P, w, Pw), out
+        uw = innovation_update(Gaussian(s.w, Pw_pred), nu, Cw, jnp.reshape(p["r_e"], (1, 1)), present=present)
+        out = Out(x=u.x, P=u.P, x_pred=pred.x, nu=u.nu, S=u.S, valid=jnp.any(present), dof=jnp.sum(present),
+                  aux={"weights": uw.x})
+        return DekfState(u.x, u.P, uw.x, uw.P), out
 
     return Filter(init=init, step=step, params=params)
 

@@ -47,7 +47,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab.filters.core import Filter, Gaussian, Out, masked_kalman_update, symmetrise
+from tracklab.filters.blocks import Gaussian, predict, update
+from tracklab.filters.core import Filter, Out
 from tracklab.filters.kind import NOISE, Entry, FilterKind, Param, noise, positive
 from tracklab.linalg import mm
 
@@ -56,10 +57,6 @@ class ErrorSpaceState(NamedTuple):
     L: Gaussian  # guide-data filter: L̂(k), the estimate of the guide at the coming step
     E: Gaussian  # guide-error filter: ê(k−1|k−1)
     queue: jax.Array  # (d, m) guide readings not yet due (oldest first)
-
-
-def _predict(F, Q, g):
-    return Gaussian(mm(F, g.x), symmetrise(mm(mm(F, g.P), F.T) + Q))
 
 
 def model_error_space(model, m: int, params, guide: str = "previous", delay: int = 0) -> Filter:
@@ -94,11 +91,10 @@ def model_error_space(model, m: int, params, guide: str = "previous", delay: int
         zm = jnp.where(present, z, 0.0)
 
         # guide-error filter (steps 2-3): e(k) = Z(k) − L̂(k), eq. (13)
-        E_pred = _predict(F, model.Q(p["q_e"]), s.E)
+        E_pred = predict(s.E, F, model.Q(p["q_e"]))
         x_pred = s.L.x + E_pred.x  # Ẑ(k, k−1) of eq. (14), made at step k−1
-        nu = zm - mm(H, x_pred)  # = e(k) − H ê(k|k−1)
-        ex, eP, nu, S = masked_kalman_update(E_pred.x, E_pred.P, nu, H, jnp.diag(p["r_e"]), present)
-        E_post = Gaussian(ex, eP)
+        # ν = Z(k) − H Ẑ(k, k−1) = e(k) − H ê(k|k−1)
+        E = update(E_pred, zm, H, jnp.diag(p["r_e"]), h_x=mm(H, x_pred), present=present)
 
         # guide-data filter (step 4): L(k+1), filtered
         g_now = z if guide == "previous" else raw[m:2 * m]
@@ -107,13 +103,12 @@ def model_error_space(model, m: int, params, guide: str = "previous", delay: int
         else:
             g, queue = g_now, s.queue
         g_present = jnp.isfinite(g)
-        L_pred = _predict(F, model.Q(p["q"]), s.L)
+        L_pred = predict(s.L, F, model.Q(p["q"]))
         r_guide = p["r"] if guide == "previous" else p["r_guide"]
-        lx, lP, _, _ = masked_kalman_update(L_pred.x, L_pred.P, jnp.where(g_present, g, 0.0) - mm(H, L_pred.x),
-                                            H, jnp.diag(r_guide), g_present)
-        out = Out(x=s.L.x + E_post.x, P=s.L.P + E_post.P, x_pred=x_pred, nu=nu, S=S,
+        L = update(L_pred, jnp.where(g_present, g, 0.0), H, jnp.diag(r_guide), present=g_present)
+        out = Out(x=s.L.x + E.x, P=s.L.P + E.P, x_pred=x_pred, nu=E.nu, S=E.S,
                   valid=jnp.any(present), dof=jnp.sum(present))
-        return ErrorSpaceState(Gaussian(lx, lP), E_post, queue), out
+        return ErrorSpaceState(L.posterior, E.posterior, queue), out
 
     return Filter(init=init, step=step, params=params)
 

@@ -33,9 +33,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab.filters.core import Filter, Out, masked_kalman_update, masked_meas, symmetrise, wrap_components
+from tracklab.filters.blocks import Gaussian, ekf_update, predict
+from tracklab.filters.core import Filter, Out, masked_meas
 from tracklab.filters.kind import (ANY_SENSOR, MEASUREMENT_NOISE, Entry, FilterKind, Param, positive, probabilities)
-from tracklab.linalg import jacobian, mahalanobis2_logdet, mm
+from tracklab.linalg import jacobian, mahalanobis2_logdet, symmetrise
 from tracklab.toml_fields import MAX_MAGNITUDE
 
 IMM_MODELS = ("cv", "ca", "ct")
@@ -124,16 +125,14 @@ def model_imm(dim: int, dt: float, sensor, params, kinds=("cv", "ca", "ct")) -> 
             preds.append(f(x0[j]))
             Qs.append((Gs[j] * p["q"][j]) @ Gs[j].T + p["q_turn"] * e_w)
         Fs, xps, Qs = jnp.stack(Fs), jnp.stack(preds), jnp.stack(Qs)
-        Pps = jax.vmap(lambda F, P, Q: symmetrise(mm(mm(F, P), F.T) + Q))(Fs, P0, Qs)
+        pred = jax.vmap(lambda g, F, Q, fx: predict(g, F, Q, f_x=fx))(Gaussian(x0, P0), Fs, Qs, xps)
 
-        def update(xp, Pp):
-            H = jacobian(h, xp)
-            nu = wrap_components(z - h(xp), sensor.angle_mask)
-            x, P, nu, S = masked_kalman_update(xp, Pp, nu, H, jnp.diag(p["r"]), present)
-            d2, logdet = mahalanobis2_logdet(S, nu)
-            return x, P, nu, S, -0.5 * (d2 + logdet)
+        def model_update(g):
+            u = ekf_update(g, z, h, jnp.diag(p["r"]), angles=sensor.angle_mask, present=present)
+            d2, logdet = mahalanobis2_logdet(u.S, u.nu)
+            return u.x, u.P, u.nu, u.S, -0.5 * (d2 + logdet)
 
-        xs, Ps, nus, Ss, ll = jax.vmap(update)(xps, Pps)
+        xs, Ps, nus, Ss, ll = jax.vmap(model_update)(pred)
         mu = c * jnp.exp(ll - jnp.max(ll))
         mu = jnp.where(jnp.any(present), mu / jnp.sum(mu), c)
         x = mu @ xs

@@ -19,59 +19,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab.filters.core import (
-    Filter,
-    Gaussian,
-    Out,
-    masked_kalman_update,
-    masked_meas,
-    select,
-    symmetrise,
-    wrap_components,
-)
+from tracklab.filters.blocks import Update, ekf_predict, ekf_update, kalman_filter, predict, update
+from tracklab.filters.core import Filter
 from tracklab.filters.kind import ANY_SENSOR, NOISE, Entry, FilterKind, noise, read_noise
-from tracklab.linalg import jacobian, mm
 from tracklab.sensors import CONVERSIONS
-
-
-def gaussian_filter(params, predict, update, report=None, init=None) -> Filter:
-    """Assemble a Filter from predict/update halves.
-
-    predict(params, g) -> g⁻;  update(params, g⁻, z, present) -> (g⁺, ν, S, used)
-    where ``present`` flags the measurement components that are there (NaN
-    components, a missed detection or a sensor with no report, are absent) and
-    ``used`` the innovation components the update used;
-    report(g) -> (x, P) in the reporting frame (identity by default);
-    init(params, prior) -> g (the prior as a Gaussian by default).
-    A step with no component used keeps the prediction.
-    """
-    report = report or (lambda g: (g.x, g.P))
-    init = init or (lambda params, prior: Gaussian(jnp.asarray(prior.x), jnp.asarray(prior.P)))
-
-    def step(params, g, meas):
-        z, present = masked_meas(meas)
-        pred = predict(params, g)
-        post, nu, S, used = update(params, pred, z, present)
-        valid = jnp.any(used)
-        post = select(valid, post, pred)
-        x, P = report(post)
-        x_pred, _ = report(pred)
-        dof = jnp.sum(used)
-        return post, Out(x=x, P=P, x_pred=x_pred, nu=jnp.where(used, nu, 0.0), S=S, valid=valid, dof=dof)
-
-    def coast(params, g, meas):
-        pred = predict(params, g)
-        x, P = report(pred)
-        _, nu, S, used = jax.eval_shape(update, params, pred, *masked_meas(meas))
-        none = jnp.zeros(used.shape, bool)
-        return pred, Out(x=x, P=P, x_pred=x, nu=jnp.zeros(nu.shape, nu.dtype), S=jnp.eye(S.shape[-1], dtype=S.dtype),
-                         valid=jnp.any(none), dof=jnp.sum(none))
-
-    return Filter(init=init, step=step, params=params, coast=coast)
-
-
-def _linear_predict(F, Q, g):
-    return Gaussian(mm(F, g.x), symmetrise(mm(mm(F, g.P), F.T) + Q))
 
 
 # --------------------------------------------------------------------------- public
@@ -81,36 +32,30 @@ def kf(F, H, Q, R) -> Filter:
     """Linear Kalman filter x' = F x + w, z = H x + v; params {F, H, Q, R}."""
     params = {k: jnp.asarray(v) for k, v in dict(F=F, H=H, Q=Q, R=R).items()}
 
-    def predict(p, g):
-        return _linear_predict(p["F"], p["Q"], g)
+    def time_update(p, g):
+        return predict(g, p["F"], p["Q"])
 
-    def update(p, g, z, present):
-        nu = z - mm(p["H"], g.x)
-        x, P, nu, S = masked_kalman_update(g.x, g.P, nu, p["H"], p["R"], present)
-        return Gaussian(x, P), nu, S, present
+    def measurement_update(p, g, z, present):
+        return update(g, z, p["H"], p["R"], present=present)
 
-    return gaussian_filter(params, predict, update)
+    return kalman_filter(params, time_update, measurement_update)
 
 
 def ekf(f, h, Q, R, *, angle_mask=None) -> Filter:
     """Extended Kalman filter for x' = f(x) + w, z = h(x) + v; params {Q, R}.
 
-    Jacobians of f and h come from ``jax.jacfwd``; innovation components flagged
+    Jacobians of f and h come from autodiff; innovation components flagged
     in ``angle_mask`` are wrapped to (-π, π].
     """
     params = {"Q": jnp.asarray(Q), "R": jnp.asarray(R)}
 
-    def predict(p, g):
-        F = jacobian(f, g.x)
-        return Gaussian(f(g.x), symmetrise(mm(mm(F, g.P), F.T) + p["Q"]))
+    def time_update(p, g):
+        return ekf_predict(g, f, p["Q"])
 
-    def update(p, g, z, present):
-        H = jacobian(h, g.x)
-        nu = wrap_components(z - h(g.x), angle_mask)
-        x, P, nu, S = masked_kalman_update(g.x, g.P, nu, H, p["R"], present)
-        return Gaussian(x, P), nu, S, present
+    def measurement_update(p, g, z, present):
+        return ekf_update(g, z, h, p["R"], angles=angle_mask, present=present)
 
-    return gaussian_filter(params, predict, update)
+    return kalman_filter(params, time_update, measurement_update)
 
 
 # ------------------------------------------------------------ experiment filters
@@ -123,10 +68,10 @@ def noise_params(q, r):
 def _model_predict(model):
     F = jnp.asarray(model.F)
 
-    def predict(p, g):
-        return _linear_predict(F, model.Q(p["q"]), g)
+    def time_update(p, g):
+        return predict(g, F, model.Q(p["q"]))
 
-    return predict
+    return time_update
 
 
 def _h_state(model, sensor):
@@ -140,25 +85,20 @@ def model_kf(model, sensor, params) -> Filter:
     H[np.arange(sensor.m), np.array(model.pos_idx)[np.arange(sensor.m) % model.dim]] = 1.0
     H = jnp.asarray(H)
 
-    def update(p, g, z, present):
-        nu = z - mm(H, g.x)
-        x, P, nu, S = masked_kalman_update(g.x, g.P, nu, H, jnp.diag(p["r"]), present)
-        return Gaussian(x, P), nu, S, present
+    def measurement_update(p, g, z, present):
+        return update(g, z, H, jnp.diag(p["r"]), present=present)
 
-    return gaussian_filter(params, _model_predict(model), update)
+    return kalman_filter(params, _model_predict(model), measurement_update)
 
 
 def model_ekf(model, sensor, params) -> Filter:
     """EKF: H = ∂h/∂x at the prediction (paper 000 eq. 21)."""
     h = _h_state(model, sensor)
 
-    def update(p, g, z, present):
-        H = jacobian(h, g.x)
-        nu = wrap_components(z - h(g.x), sensor.angle_mask)
-        x, P, nu, S = masked_kalman_update(g.x, g.P, nu, H, jnp.diag(p["r"]), present)
-        return Gaussian(x, P), nu, S, present
+    def measurement_update(p, g, z, present):
+        return ekf_update(g, z, h, jnp.diag(p["r"]), angles=sensor.angle_mask, present=present)
 
-    return gaussian_filter(params, _model_predict(model), update)
+    return kalman_filter(params, _model_predict(model), measurement_update)
 
 
 def model_cmkf(model, sensor, params, debias="plain") -> Filter:
@@ -170,13 +110,12 @@ def model_cmkf(model, sensor, params, debias="plain") -> Filter:
     H[np.arange(model.dim), np.array(model.pos_idx)] = 1.0
     H = jnp.asarray(H)
 
-    def update(p, g, z, present):
+    def measurement_update(p, g, z, present):
         zc, Rc = convert(z, jnp.sqrt(p["r"]))
         used = jnp.broadcast_to(jnp.all(present), (model.dim,))  # a conversion needs every component
-        x, P, nu, S = masked_kalman_update(g.x, g.P, zc - mm(H, g.x), H, Rc, used)
-        return Gaussian(x, P), nu, S, used
+        return update(g, zc, H, Rc, present=used)
 
-    return gaussian_filter(params, _model_predict(model), update)
+    return kalman_filter(params, _model_predict(model), measurement_update)
 
 
 def model_sequential_ekf(model, sensor, params) -> Filter:
@@ -191,20 +130,17 @@ def model_sequential_ekf(model, sensor, params) -> Filter:
     m = sensor.m
     order = [i for i in range(m) if sensor.angle_mask[i]] + [i for i in range(m) if not sensor.angle_mask[i]]
 
-    def update(p, g, z, present):
-        x, P = g.x, g.P
+    def measurement_update(p, g, z, present):
         nus, Ss = [None] * m, [None] * m
         for i in order:  # static loop over measurement components (m ≤ 5)
             hi = lambda s, i=i: h(s)[i]
-            Hi = jax.grad(hi)(x)[None, :]
-            nu_i = z[i] - hi(x)
-            if sensor.angle_mask[i]:
-                nu_i = wrap_components(nu_i[None], (True,))[0]
-            x, P, nu_i, S_i = masked_kalman_update(x, P, nu_i[None], Hi, p["r"][i][None, None], present[i][None])
-            nus[i], Ss[i] = nu_i[0], S_i[0, 0]
-        return Gaussian(x, P), jnp.stack(nus), jnp.diag(jnp.stack(Ss)), present
+            u = update(g, z[i][None], jax.grad(hi)(g.x)[None, :], p["r"][i][None, None], h_x=hi(g.x)[None],
+                       angles=(sensor.angle_mask[i],), present=present[i][None])
+            g = u.posterior
+            nus[i], Ss[i] = u.nu[0], u.S[0, 0]
+        return Update(g.x, g.P, jnp.stack(nus), jnp.diag(jnp.stack(Ss)), present)
 
-    return gaussian_filter(params, _model_predict(model), update)
+    return kalman_filter(params, _model_predict(model), measurement_update)
 
 
 # ------------------------------------------------------------------------- declarations

@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from tracklab.filters.core import Gaussian, Prior, masked_kalman_update, symmetrise, wrap_angle
-from tracklab.filters.kalman import gaussian_filter
+from tracklab.filters.blocks import Gaussian, kalman_filter, predict, update
+from tracklab.filters.core import Prior
 from tracklab.filters.kind import NOISE, Entry, FilterKind, noise
-from tracklab.linalg import jacobian, mm
+from tracklab.linalg import jacobian, mm, symmetrise
 
 
 def polar_to_cartesian(s):
@@ -41,7 +41,7 @@ def model_polar_kf(dt, sensor, params):
         P = P.at[:2, 2:].set(0.0).at[2:, :2].set(0.0)  # decoupled channels
         return Gaussian(cartesian_to_polar(prior.x), P)
 
-    def predict(p, g):
+    def time_update(p, g):
         r, b = g.x[0], g.x[2]
         c, s = jnp.cos(b), jnp.sin(b)
         q = jnp.broadcast_to(p["q"], (2,))
@@ -49,19 +49,16 @@ def model_polar_kf(dt, sensor, params):
         Gb = jnp.array([[-(T**2) * s / (2 * r), T**2 * c / (2 * r)], [-T * s / r, T * c / r]])  # eq. (16)
         Q = jnp.zeros((4, 4))
         Q = Q.at[:2, :2].set(mm(Gr * q, Gr.T)).at[2:, 2:].set(mm(Gb * q, Gb.T))
-        return Gaussian(mm(F, g.x), symmetrise(mm(mm(F, g.P), F.T) + Q))
+        return predict(g, F, Q)
 
-    def update(p, g, z, present):
-        nu = z - mm(H, g.x)
-        nu = nu.at[1].set(wrap_angle(nu[1]))
-        x, P, nu, S = masked_kalman_update(g.x, g.P, nu, H, jnp.diag(p["r"]), present)
-        return Gaussian(x, P), nu, S, present
+    def measurement_update(p, g, z, present):  # z = [r, β]: the bearing innovation wrapped
+        return update(g, z, H, jnp.diag(p["r"]), angles=(False, True), present=present)
 
     def report(g):
         J = jacobian(polar_to_cartesian, g.x)
         return polar_to_cartesian(g.x), symmetrise(mm(mm(J, g.P), J.T))
 
-    return gaussian_filter(params, predict, update, report=report, init=init)
+    return kalman_filter(params, time_update, measurement_update, report=report, init=init)
 
 
 def _read(e: Entry):

@@ -26,9 +26,10 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from tracklab.filters.core import Filter, Out, masked_kalman_update, masked_meas, symmetrise, wrap_components
+from tracklab.filters.blocks import Gaussian, innovation, innovation_update
+from tracklab.filters.core import Filter, Out, masked_meas
 from tracklab.filters.kind import ANY_SENSOR, NOISE, Entry, FilterKind, Param, noise, positive, unit_interval
-from tracklab.linalg import jacobian, mm
+from tracklab.linalg import jacobian, mm, symmetrise
 
 
 class StfState(NamedTuple):
@@ -55,7 +56,7 @@ def _stf(f, h, Q_of, R_of, angle_mask, params) -> Filter:
         x_pred, FPF, Q = predict_parts(p, s)
         R = R_of(p)
         H = jacobian(h, x_pred)
-        gamma = wrap_components(z - h(x_pred), angle_mask)
+        gamma = innovation(z, h(x_pred), angle_mask)
         g2 = jnp.where(present, gamma**2, 0.0)
         v = jnp.where(present, jnp.where(s.seen, (p["rho"] * s.v + g2) / (1.0 + p["rho"]), g2), s.v)
         HQH = jnp.diagonal(mm(mm(H, Q), H.T))
@@ -65,10 +66,10 @@ def _stf(f, h, Q_of, R_of, angle_mask, params) -> Filter:
         floor = 1e-12 * jnp.sum(jnp.where(present, jnp.diagonal(R), 0.0)) + jnp.finfo(trM.dtype).tiny
         lam = jnp.where(jnp.any(present), jnp.maximum(1.0, trN / jnp.maximum(trM, floor)), 1.0)
         P_pred = lam * FPF + Q
-        x, P, nu, S = masked_kalman_update(x_pred, P_pred, gamma, H, R, present)
-        out = Out(x=x, P=P, x_pred=x_pred, nu=nu, S=S, valid=jnp.any(present), dof=jnp.sum(present),
+        u = innovation_update(Gaussian(x_pred, P_pred), gamma, H, R, present=present)
+        out = Out(x=u.x, P=u.P, x_pred=x_pred, nu=u.nu, S=u.S, valid=jnp.any(present), dof=jnp.sum(present),
                   aux={"fading": lam})
-        return StfState(x, P, v, s.seen | present), out
+        return StfState(u.x, u.P, v, s.seen | present), out
 
     def coast(p, s, meas):  # no measurement: a plain prediction (λ = 1)
         x_pred, FPF, Q = predict_parts(p, s)

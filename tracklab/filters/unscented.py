@@ -20,10 +20,9 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab.filters.core import Gaussian, symmetrise, wrap_angle
-from tracklab.filters.kalman import gaussian_filter
+from tracklab.filters.blocks import Gaussian, Update, innovation, kalman_filter
 from tracklab.filters.kind import ANY_SENSOR, NOISE, Entry, FilterKind, Param, interval, noise, nonnegative
-from tracklab.linalg import cholesky, mm, spd_inverse
+from tracklab.linalg import cholesky, mm, spd_inverse, symmetrise
 
 
 def sigma_weights(n, alpha, beta, kappa):
@@ -47,39 +46,37 @@ def model_ukf(model, sensor, params):
     n = model.n
     F = jnp.asarray(model.F)
     pos = np.array(model.pos_idx)
-    angles = jnp.asarray(sensor.angle_mask)
 
     def weights(p):
         return sigma_weights(n, p["ut_alpha"], p["ut_beta"], p["ut_kappa"])
 
-    def predict(p, g):
+    def time_update(p, g):
         scale, wm, wc = weights(p)
         X = sigma_points(g.x, g.P, scale) @ F.T
         x = X[0] + wm[1:] @ (X[1:] - X[0])  # deviation form: no cancellation of large weights
         d = X - x
         return Gaussian(x, symmetrise(mm((d * wc[:, None]).T, d) + model.Q(p["q"])))
 
-    def update(p, g, z, present):
+    def measurement_update(p, g, z, present):
         scale, wm, wc = weights(p)
         X = sigma_points(g.x, g.P, scale)
         Z = sensor.h(jnp.stack([X[:, i] for i in pos], axis=-1))  # (2n+1, m)
-        dZ = jnp.where(angles, wrap_angle(Z - Z[0]), Z - Z[0])
+        dZ = innovation(Z, Z[0], sensor.angle_mask)  # angles differenced on the circle
         z_hat = Z[0] + wm @ dZ
-        dZ = jnp.where(angles, wrap_angle(Z - z_hat), Z - z_hat)
+        dZ = innovation(Z, z_hat, sensor.angle_mask)
         dX = X - g.x
         used = present
         both = used[:, None] & used[None, :]
         R = jnp.diag(p["r"])
         S = jnp.where(both, mm((dZ * wc[:, None]).T, dZ) + R, jnp.eye(len(used), dtype=R.dtype))
         C = jnp.where(used[None, :], mm((dX * wc[:, None]).T, dZ), 0.0)
-        nu = jnp.where(used, z - z_hat, 0.0)
-        nu = jnp.where(angles, wrap_angle(nu), nu)
+        nu = jnp.where(used, innovation(z, z_hat, sensor.angle_mask), 0.0)
         K = mm(C, spd_inverse(S))
         x = g.x + mm(K, nu)
         P = symmetrise(g.P - mm(mm(K, S), K.T))
-        return Gaussian(x, P), nu, S, used
+        return Update(x, P, nu, S, used)
 
-    return gaussian_filter(params, predict, update)
+    return kalman_filter(params, time_update, measurement_update)
 
 
 def _read(e: Entry):

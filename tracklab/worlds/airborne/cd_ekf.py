@@ -27,7 +27,7 @@ import jax.numpy as jnp
 
 from tracklab.worlds.airborne.boresight import EPS, OMEGA, ModelParams, antenna_motion, antenna_rate_at, drift, observation_matrix, process_noise
 from tracklab.worlds.airborne.tracker import Timing, Tracker
-from tracklab.filters.core import kalman_update
+from tracklab.filters.blocks import Gaussian, innovation_update
 from tracklab.linalg import mm, solve
 
 
@@ -155,8 +155,8 @@ def cd_ekf(timing: Timing) -> Tracker:
         z_hat = jnp.concatenate([k[:2] * jnp.mean(s.pred[:, jnp.array(EPS)], axis=0), jnp.zeros(2, s.x.dtype)])
         nu = s.zsum / n - z_hat  # the range and velocity gates sat on the predictions
         H = mm(observation_matrix(k), s.refer)
-        x, P, _ = kalman_update(s.pred[-1], s.P_end, nu, H, jnp.diag(params.r) / n)
-        return plan(params, x, P, w_a)
+        u = innovation_update(Gaussian(s.pred[-1], s.P_end), nu, H, jnp.diag(params.r) / n)
+        return plan(params, u.x, u.P, w_a)
 
     def estimate(s: CDState):
         return s.x, s.P

@@ -30,8 +30,8 @@ from jax.scipy.linalg import block_diag
 from tracklab.worlds.airborne.boresight import EPS, OMEGA, antenna_motion
 from tracklab.worlds.airborne.cd_ekf import command
 from tracklab.worlds.airborne.tracker import Timing, Tracker
-from tracklab.filters.core import kalman_update, symmetrise
-from tracklab.linalg import expm, mm
+from tracklab.filters.blocks import Gaussian, innovation_update
+from tracklab.linalg import expm, mm, symmetrise
 
 
 class DecoupledState(NamedTuple):
@@ -157,9 +157,9 @@ def decoupled(timing: Timing, separate=False) -> Tracker:
         for (a, b), (rows, states), P_end, refer in zip(bounds, signals, s.P_end, s.refer):
             rows = np.asarray(rows)
             H = jnp.zeros((len(rows), b - a), s.x.dtype).at[np.arange(len(rows)), np.asarray(states)].set(k[rows])
-            x, P, _ = kalman_update(s.pred[-1, a:b], P_end, nu[rows], mm(H, refer), jnp.diag(params.r[rows]) / n)
-            xs.append(x)
-            Ps.append(P)
+            u = innovation_update(Gaussian(s.pred[-1, a:b], P_end), nu[rows], mm(H, refer), jnp.diag(params.r[rows]) / n)
+            xs.append(u.x)
+            Ps.append(u.P)
         return plan(params, jnp.concatenate(xs), block_diag(*Ps), w_a)
 
     def estimate(s):

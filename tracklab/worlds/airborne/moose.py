@@ -33,8 +33,7 @@ import jax.numpy as jnp
 from tracklab.worlds.airborne.boresight import EPS, observation_matrix
 from tracklab.worlds.airborne.cd_ekf import CDParams, command, predict_period
 from tracklab.worlds.airborne.tracker import Timing, Tracker
-from tracklab.filters.core import symmetrise
-from tracklab.linalg import mm, spd_inverse
+from tracklab.linalg import mm, spd_inverse, symmetrise
 
 
 class MooseParams(NamedTuple):

@@ -1,0 +1,163 @@
+"""Building blocks of a Gaussian (Kalman-type) filter: the predict/update algebra every
+built-in Kalman filter is made of, for writing one's own.
+
+The state is a ``Gaussian(x, P)``. One cycle::
+
+    g = predict(g, F, Q)                          # x⁻ = F x, P⁻ = F P Fᵀ + Q
+    u = update(g, z, H, R, angles=(False, True))  # Joseph form; NaN in z = absent
+    g = u.posterior                               # u.nu, u.S: innovation and its covariance
+
+``kalman_filter(params, time_update, measurement_update)`` assembles such halves into a
+``Filter`` (its ``step``, a cheaper ``coast`` and the ``Out`` statistics). Everything here
+is a pure function of arrays: it works under ``jax.jit``, ``jax.vmap``, ``jax.grad`` and
+``jax.jacfwd``, in float32 and float64. Products are ``tracklab.linalg.mm`` (elementwise
+under ``vmap``) and Jacobians ``tracklab.linalg.jacobian`` (forward mode).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from tracklab.filters.core import Filter, Out, masked_meas, select
+from tracklab.linalg import jacobian, mm, spd_inverse, symmetrise
+from tracklab.sensors.geometry import wrap
+
+wrap_angle = wrap  # an angle wrapped to (-π, π]
+
+
+class Gaussian(NamedTuple):
+    """The state of every Kalman-type filter here: mean x (n,) and covariance P (n, n)."""
+
+    x: jax.Array
+    P: jax.Array
+
+
+class Update(NamedTuple):
+    """What ``update`` (and ``innovation_update``) gives: the posterior mean and covariance, the innovation ν = z − ẑ (m,)
+    (0 where a component was not used), its covariance S = H P Hᵀ + R (m, m) (an unused
+    component's row and column decoupled, with unit variance) and ``used`` (m,), which
+    components entered the update."""
+
+    x: jax.Array
+    P: jax.Array
+    nu: jax.Array
+    S: jax.Array
+    used: jax.Array
+
+    @property
+    def posterior(self) -> Gaussian:
+        return Gaussian(self.x, self.P)
+
+
+# --------------------------------------------------------------------------- predict
+
+
+def predict(g: Gaussian, F, Q, *, f_x=None) -> Gaussian:
+    """Prediction x⁻ = F x (or ``f_x``, a nonlinear f(x) already evaluated), P⁻ = F P Fᵀ + Q,
+    symmetrised."""
+    x = mm(F, g.x) if f_x is None else f_x
+    return Gaussian(x, symmetrise(mm(mm(F, g.P), F.T) + Q))
+
+
+def ekf_predict(g: Gaussian, f, Q) -> Gaussian:
+    """Extended prediction: x⁻ = f(x), P⁻ = F P Fᵀ + Q with F = ∂f/∂x at x (autodiff)."""
+    return predict(g, jacobian(f, g.x), Q, f_x=f(g.x))
+
+
+# --------------------------------------------------------------------------- update
+
+
+def innovation(z, z_pred, angles=None):
+    """ν = z − ẑ, the components flagged in ``angles`` (a static tuple of bools) wrapped to (-π, π]."""
+    nu = z - z_pred
+    if angles is None or not any(angles):
+        return nu
+    return jnp.where(jnp.asarray(angles), wrap_angle(nu), nu)
+
+
+def joseph_covariance(P, K, H, R):
+    """The covariance after an update with any gain K, in Joseph form:
+    (I − K H) P (I − K H)ᵀ + K R Kᵀ, symmetrised (positive semi-definite whatever K)."""
+    IKH = jnp.eye(P.shape[-1], dtype=P.dtype) - mm(K, H)
+    return symmetrise(mm(mm(IKH, P), IKH.T) + mm(mm(K, R), K.T))
+
+
+def innovation_update(g: Gaussian, nu, H, R, *, present=None) -> Update:
+    """The Kalman update of ``g`` on an innovation ν (m,) already formed: S = H P Hᵀ + R,
+    K = P Hᵀ S⁻¹, x⁺ = x + K ν, P⁺ = (I − K H) P (I − K H)ᵀ + K R Kᵀ (Joseph form).
+
+    Only the components ``present`` flags (default: all) are used: the others' rows of H and
+    ν are zeroed and their R entries replaced by an uncoupled unit variance, so they change
+    neither mean nor covariance (none used: the prior is kept).
+    """
+    if present is None:
+        used = jnp.ones(jnp.shape(nu), bool)
+    else:
+        used = jnp.asarray(present)
+        H = jnp.where(used[:, None], H, 0.0)
+        nu = jnp.where(used, nu, 0.0)
+        R = jnp.where(used[:, None] & used[None, :], R, jnp.eye(R.shape[-1], dtype=R.dtype))
+    PHt = mm(g.P, H.T)
+    S = mm(H, PHt) + R
+    K = mm(PHt, spd_inverse(S))
+    return Update(g.x + mm(K, nu), joseph_covariance(g.P, K, H, R), nu, S, used)
+
+
+def update(g: Gaussian, z, H, R, *, h_x=None, angles=None, present=None) -> Update:
+    """Kalman measurement update of the prediction ``g`` with z (m,), H (m, n), R (m, m).
+
+    ν = z − ẑ with ẑ = H x (or ``h_x``, a nonlinear h(x) already evaluated), the components
+    flagged in ``angles`` wrapped to (-π, π] (``innovation``), then ``innovation_update``
+    (Joseph form) with the components ``present`` flags, by default the finite ones of z
+    (NaN = absent). ``present`` known without looking at z (a report pattern shared by
+    every run) keeps the covariance independent of the measurement.
+    """
+    nu = innovation(z, mm(H, g.x) if h_x is None else h_x, angles)
+    return innovation_update(g, nu, H, R, present=jnp.isfinite(z) if present is None else present)
+
+
+def ekf_update(g: Gaussian, z, h, R, *, angles=None, present=None) -> Update:
+    """Extended update: ``update`` with ẑ = h(x) and H = ∂h/∂x at the prediction (autodiff)."""
+    return update(g, z, jacobian(h, g.x), R, h_x=h(g.x), angles=angles, present=present)
+
+
+# ------------------------------------------------------------------------- assembly
+
+
+def kalman_filter(params, time_update, measurement_update, *, report=None, init=None, layout=None) -> Filter:
+    """A ``Filter`` from its two halves.
+
+    ``time_update(params, g) -> g⁻``; ``measurement_update(params, g⁻, z, present) -> Update``,
+    where z has its absent components (NaN in the measurement) set to 0 and ``present`` flags
+    the others (``core.masked_meas``); ``report(g) -> (x, P)`` in the reporting frame (identity
+    by default); ``init(params, prior) -> g`` (the prior as a Gaussian by default); ``layout``
+    as ``Filter``'s. A step with no component used keeps the prediction. ``Out`` holds x, P,
+    x_pred, ν (0 where unused), S, valid (any component used) and dof (how many); ``coast``
+    is the step with nothing present, without the update.
+    """
+    report = report or (lambda g: (g.x, g.P))
+    init = init or (lambda params, prior: Gaussian(jnp.asarray(prior.x), jnp.asarray(prior.P)))
+
+    def step(params, g, meas):
+        z, present = masked_meas(meas)
+        pred = time_update(params, g)
+        u = measurement_update(params, pred, z, present)
+        valid = jnp.any(u.used)
+        post = select(valid, Gaussian(u.x, u.P), pred)
+        x, P = report(post)
+        x_pred, _ = report(pred)
+        return post, Out(x=x, P=P, x_pred=x_pred, nu=jnp.where(u.used, u.nu, 0.0), S=u.S, valid=valid,
+                         dof=jnp.sum(u.used))
+
+    def coast(params, g, meas):
+        pred = time_update(params, g)
+        x, P = report(pred)
+        u = jax.eval_shape(measurement_update, params, pred, *masked_meas(meas))
+        none = jnp.zeros(u.used.shape, bool)
+        return pred, Out(x=x, P=P, x_pred=x, nu=jnp.zeros(u.nu.shape, u.nu.dtype),
+                         S=jnp.eye(u.S.shape[-1], dtype=u.S.dtype), valid=jnp.any(none), dof=jnp.sum(none))
+
+    return Filter(init=init, step=step, params=params, coast=coast, layout=layout)
