@@ -4,25 +4,31 @@ A converted-measurement Kalman filter on the state [x, y, ẋ, ẏ] (not trackla
 layout), written with tracklab's building blocks: the range-bearing measurement is turned
 into a Cartesian position with the covariance J R Jᵀ linearised at the measurement (Zhang
 Yujun et al., "Study on high accuracy tracking target in lidar", eq. 12), then ``update``
-does the rest (Joseph form). Its maths is the built-in ``cmkf``'s; the README's "Your own
-filter" shows it run from Python and tuned.
+does the rest (Joseph form). Its two numbers are declared (``tracklab.declare``): they arrive
+in ``params``, and ``tracklab tune --params accel_var`` and ``tracklab sweep --grid
+"filter[CMKF (own code)].accel_var=…"`` name them. Its maths is the built-in ``cmkf``'s; the
+README's "Your own filter" shows it run from Python and tuned.
 """
 
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab import Layout
+import tracklab
+from tracklab import Layout, Param
 from tracklab.filters import kalman_filter, predict, update
 
 
-def converted_kf(context, accel_var=None, r=None):
+@tracklab.declare(  # its numbers: inputs of the compiled program, tuned and swept by name
+    accel_var=Param(doc="acceleration noise variance", unit="(m/s²)²", constraint="positive",
+                    default=lambda context: context.accel_sigma**2),
+    r=Param(doc="range and bearing noise variances", unit="m², rad²", constraint="positive",
+            default=lambda context: np.diag(context.R)))
+def converted_kf(context):
     """A CMKF for one 2-D range-bearing sensor; params {"accel_var", "r"} (default: the
     scenario's σ_a² and the sensor's variances)."""
     if context.dim != 2 or context.m != 2:
         raise ValueError("converted_kf needs a 2-D scenario and one range-bearing sensor (r, bearing)")
     dt = context.dt
-    params = {"accel_var": jnp.asarray(context.accel_sigma**2 if accel_var is None else accel_var, float),
-              "r": jnp.asarray(np.diag(context.R) if r is None else r, float)}
     F = jnp.array([[1.0, 0, dt, 0], [0, 1, 0, dt], [0, 0, 1, 0], [0, 0, 0, 1]])
     G = jnp.array([[dt**2 / 2, 0], [0, dt**2 / 2], [dt, 0], [0, dt]])
     H = jnp.eye(2, 4)
@@ -37,4 +43,4 @@ def converted_kf(context, accel_var=None, r=None):
         both = jnp.full(2, jnp.all(present))  # the conversion needs range and bearing
         return update(g, pos, H, J @ jnp.diag(params["r"]) @ J.T, present=both)
 
-    return kalman_filter(params, time_update, measurement_update, layout=Layout(n=4, pos_idx=(0, 1), vel_idx=(2, 3)))
+    return kalman_filter({}, time_update, measurement_update, layout=Layout(n=4, pos_idx=(0, 1), vel_idx=(2, 3)))

@@ -19,7 +19,8 @@ import jax
 import jax.numpy as jnp
 
 import tracklab
-from tracklab import Filter, Layout, Out, Param
+from tracklab import Layout, Param
+from tracklab.filters import ekf_update, kalman_filter, predict
 
 
 def blocks(T, tau, sigma_m):
@@ -40,25 +41,14 @@ def singer(context):
     T = context.dt
     h = lambda x: jnp.stack([jnp.hypot(x[0], x[3]), jnp.arctan2(x[3], x[0])])
 
-    def step(params, state, meas):
-        x, P = state
-        F1, Q1 = blocks(T, params["tau"], params["sigma_m"])
-        F, Q = jax.scipy.linalg.block_diag(F1, F1), jax.scipy.linalg.block_diag(Q1, Q1)
-        xp, Pp = F @ x, F @ P @ F.T + Q
-        have = jnp.all(jnp.isfinite(meas.z))
-        H = jax.jacfwd(h)(xp)
-        nu = jnp.where(have, meas.z, h(xp)) - h(xp)
-        nu = nu.at[1].set((nu[1] + jnp.pi) % (2 * jnp.pi) - jnp.pi)
-        R = jnp.diag(params["r"])
-        S = H @ Pp @ H.T + R
-        K = jnp.linalg.solve(S, H @ Pp).T
-        A = jnp.eye(6) - K @ H
-        x1 = jnp.where(have, xp + K @ nu, xp)
-        P1 = jnp.where(have, A @ Pp @ A.T + K @ R @ K.T, Pp)
-        return (x1, P1), Out(x=x1, P=P1, x_pred=xp, nu=nu, S=S, valid=have)
+    def time_update(params, g):
+        F, Q = blocks(T, params["tau"], params["sigma_m"])
+        return predict(g, jax.scipy.linalg.block_diag(F, F), jax.scipy.linalg.block_diag(Q, Q))
 
-    return Filter(lambda params, prior: (prior.x, prior.P), step, params={},
-                  layout=Layout(n=6, pos_idx=(0, 3), vel_idx=(1, 4)))
+    def measurement_update(params, g, z, present):
+        return ekf_update(g, z, h, jnp.diag(params["r"]), angles=(False, True), present=present)
+
+    return kalman_filter({}, time_update, measurement_update, layout=Layout(n=6, pos_idx=(0, 3), vel_idx=(1, 4)))
 '''
 
 EXPERIMENT = """

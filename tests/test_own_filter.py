@@ -139,7 +139,7 @@ def test_tuning_a_parameter_of_ones_own_by_its_own_name(tmp_path):
     own = _example_module().converted_kf(tracklab.filter_context(scenario, [sensor]), accel_var=400.0)
     exp = tracklab.experiment(scenario, sensor, [FilterSpec("mine", own)], runs=500, prior={"vel_sigma": 50.0})
     for names, why in (({"mine": {"accel_vr": "positive"}}, "has no parameter 'accel_vr'"),
-                       ({"mine": ["accel_var"]}, "give each parameter its constraint"),
+                       ({"mine": ["spare"]}, "declares no tunable 'spare'"),
                        ({"yours": {"accel_var": "positive"}}, "no filter labelled 'yours'"),
                        ({"mine": {"accel_var": "posit"}}, "constraint 'posit'"),
                        ({"mine": {"accel_var": (0.0, 10.0)}}, "outside its constraint (0, 10)")):

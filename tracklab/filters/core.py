@@ -85,7 +85,8 @@ class Filter(NamedTuple):
     measurement but cheaper. ``layout`` (optional, a ``tracklab.models.Layout``) says where
     position and velocity sit in the state; None: the interleaved layout [x, ẋ, y, ẏ(, z, ż)].
     The prior handed to ``init`` is in that layout (other state components: zero mean,
-    the experiment's extra prior variance).
+    the experiment's extra prior variance). ``declared`` (set by ``tracklab.declare``): the
+    numbers of ``params`` its factory declares, name -> ``Param``.
     """
 
     init: Callable[[Any, Prior], Any]
@@ -93,6 +94,7 @@ class Filter(NamedTuple):
     params: Any
     coast: Callable[[Any, Any, Meas], tuple[Any, Out]] | None = None
     layout: Any = None
+    declared: Any = None
 
 
 def select(valid, a, b):

@@ -83,7 +83,7 @@ class Declared:
         if clash:
             raise TypeError(f"{clash[0]} is declared and also set in the returned Filter's params: leave it to "
                             "the declaration")
-        return flt._replace(params={**own, **values})
+        return flt._replace(params={**own, **values}, declared=dict(self.params))
 
 
 def declare(**params: Param) -> Callable[[Callable], Declared]:

@@ -232,9 +232,13 @@ def _named_selection(exp, names: dict) -> dict:
             raise ValueError(f"tune: no filter labelled {label!r} (filters: {', '.join(by_label)})")
         fc = by_label[label]
         if isinstance(fc, FilterSpec):
-            if not isinstance(wanted, dict):
-                raise ValueError(f"tune: filter {label!r} is one's own: give each parameter its constraint, "
-                                 f"e.g. {{{label!r}: {{'q': 'positive'}}}}")
+            if not isinstance(wanted, dict):  # declared numbers, by name: their declared constraints
+                undeclared = [n for n in wanted if n not in fc.declared or not fc.declared[n].tune]
+                if undeclared:
+                    raise ValueError(f"tune: filter {label!r} declares no tunable {undeclared[0]!r} (declared: "
+                                     f"{', '.join(n for n, p in fc.declared.items() if p.tune) or 'none'}); give "
+                                     f"each leaf of its params its constraint, e.g. {{{label!r}: {{'q': 'positive'}}}}")
+                wanted = {n: fc.declared[n].constraint for n in wanted}
             leaves = named_leaves(fc.filter.params)
             picked = {}
             for n, spec in wanted.items():

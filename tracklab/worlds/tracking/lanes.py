@@ -67,6 +67,10 @@ class FilterSpec:
     declared: Mapping = field(default_factory=dict, repr=False)  # name -> Param: its factory's declared numbers
     code: str | None = None  # program_key of its filter; None: structure by identity
 
+    def __post_init__(self):
+        if not self.declared and self.filter.declared:  # what its factory declares (tracklab.declare)
+            object.__setattr__(self, "declared", dict(self.filter.declared))
+
     def _value(self):
         return (self.label, self.kind, tuple(self.sensors), self.layout, self.filter.layout, self.prior_extra_var,
                 self.code)
