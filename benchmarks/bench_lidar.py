@@ -121,9 +121,10 @@ def _pass(fn, params, key, chunks, lanes):
     times, twice = [], 0
     for idx, live in chunks:
         t0 = time.perf_counter()
-        sums, flags = runner.pop_diverged(runner.host_sums(fn(params, key, idx, live, no_exclusion), B))
+        sums = runner.host_sums(fn(params, key, idx, live, no_exclusion), B)
+        flags = sums.diverged
         if flags is not None and flags.any():
-            sums, _ = runner.pop_diverged(runner.host_sums(fn(params, key, idx, live, jnp.asarray(flags)), B))
+            sums = runner.host_sums(fn(params, key, idx, live, jnp.asarray(flags)), B)
             twice += 1
         acc.add(sums)
         times.append(time.perf_counter() - t0)
@@ -154,7 +155,7 @@ def time_program(world, params, runs, seed=0, repeat=1):
             if wall_i < wall:
                 wall, times, acc, twice = wall_i, times_i, acc_i, twice_i
     return {"compile_s": compile_s, "held": compile_s == 0.0, "first_call_s": first, "wall_s": wall, "times": times,
-            "sums": acc.total, "twice": twice, "n_chunks": len(chunks), "chunk": world.chunk_size}
+            "sums": runner.merged(acc.total), "twice": twice, "n_chunks": len(chunks), "chunk": world.chunk_size}
 
 
 def bench_throughput(labels, runs, chunk, seed=0, repeat=1):

@@ -87,15 +87,7 @@ def _alone(exp, *settings):
     raw = copy.deepcopy(exp.raw)
     for path, value in settings:
         _set(raw, path, value)
-    one = parse_experiment(exp.path, raw)
-    if hasattr(one, "simulate"):
-        return one.simulate(one.runs, one.seed, chunk=exp.chunk)
-    if hasattr(one, "trackers"):
-        out = one.monte_carlo(chunk=exp.chunk)
-        return one.document(out.sums, out.runs, out.wall_s, out.compile_s, one.precision, out.samples)
-    from tracklab.montecarlo.statistics import statistics
-
-    return statistics(one.monte_carlo(chunk=exp.chunk), one.window, one.pred_windows)
+    return parse_experiment(exp.path, raw).simulate()  # every world's run, as `tracklab run` makes it
 
 
 def _agree(a, b, what):

@@ -391,7 +391,7 @@ CASES = [
     case("airborne-moose-p-stay-1", edit(AIRBORNE, tracker=[{"kind": "moose", "p_stay": 1.0}]), "tracker[1].p_stay",
          "1.0", "(0, 1)"),
     case("airborne-no-tracker", edit(AIRBORNE, drop=["tracker"]), "[tracker]", "None", "required"),
-    case("airborne-lam-zero", edit(AIRBORNE, tracker=[{"kind": "cd_ekf", "lam": 0.0}]), "tracker[1].lam", "0.0", "> 0"),
+    case("airborne-lam-zero", edit(AIRBORNE, tracker=[{"kind": "cd_ekf", "lam": 0.0}]), "tracker[1].lam", "0.0", "(0, 1000]"),
     case("airborne-duplicate-label", edit(AIRBORNE, tracker=[{"kind": "cd_ekf"}, {"kind": "cd_ekf"}]), "tracker[2].label",
          "cd_ekf", "unique"),
     case("airborne-range-velocity", edit(AIRBORNE, tracker=[{"kind": "decoupled", "range_velocity": "joint"}]),

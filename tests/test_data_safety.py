@@ -387,6 +387,11 @@ def test_airborne_tracker_that_lost_lock_everywhere_shows_missing(tmp_path):
     assert "0.00" not in (tmp_path / "table.csv").read_text().splitlines()[1]
 
 
+def _merged(parts):
+    added, largest = parts  # what adds up over runs, and what is the largest
+    return added | largest
+
+
 def test_servo_case_statistics_leave_diverged_runs_out():
     from tracklab.worlds.servo.experiment import case_summary
     from tracklab.worlds.servo.world import case_sums
@@ -394,11 +399,11 @@ def test_servo_case_statistics_leave_diverged_runs_out():
     mx = np.array([0.1, 0.2, np.inf, 1e20, 0.05])  # deg: two healthy runs, one overflowed, one lost the target
     rnd = np.array([0.001, 0.003, np.nan, 1e19, 0.002])
     live = np.array([True, True, True, True, False])  # the last run is padding
-    s = case_summary(case_sums(mx, rnd, np.array([0.5, 0.7, 1.0, 1.0, 9.0]), live), 4, True)
+    s = case_summary(_merged(case_sums(mx, rnd, np.array([0.5, 0.7, 1.0, 1.0, 9.0]), live)), 4, True)
     assert s["diverged"] == 2 and s["runs"] == 4
     assert s["max_track_err"] == pytest.approx(0.15 * 60) and s["max_track_err_worst"] == pytest.approx(0.2 * 60)
     assert s["random_err"] == pytest.approx(0.002 * 3600) and s["max_rate_err"] == pytest.approx(0.6)
-    none = case_summary(case_sums(np.array([np.nan, 400.0]), np.array([1.0, 1.0]), None, np.ones(2, bool)), 2, False)
+    none = case_summary(_merged(case_sums(np.array([np.nan, 400.0]), np.array([1.0, 1.0]), None, np.ones(2, bool))), 2, False)
     assert none["diverged"] == 2 and all(np.isnan(none[k]) for k in ("max_track_err", "random_err", "max_rate_err"))
 
 
@@ -499,7 +504,7 @@ def test_servo_latency_inside_the_margin_and_on_axis_are_accepted(tmp_path):
     (("tune", "air.toml", "--params", "lam", "--loss", "mse_pos"), "must be one of pointing, los_rate"),
     (("sweep", "servo.toml", "--grid", "experiment.runs=2:4:2", "--runs", "3"), "give one of them"),
     (("sweep", "servo.toml", "--grid", "q=1:2:2"), "no filter of this experiment declares a scalable parameter 'q'"),
-    (("tune", "servo.toml", "--params", "q"), "no selected filter"),
+    (("tune", "servo.toml", "--params", "q"), "no filter here declares a tunable number"),
     (("sweep", "small.toml", "--grid", "rho=0.5:1:2"), "no filter of this experiment declares a scalable parameter 'rho'"),
     (("tune", "small.toml", "--params", "rho"), "must name parameters among q, r"),
     (("tune", "small.toml", "--params", "q", "--filters", "nope"), "--filters"),

@@ -228,7 +228,7 @@ def test_tune_compiles_its_gradient_and_its_evaluation_once(tmp_path, xla_flags)
     doc = json.loads(done.stdout.strip().splitlines()[-1])
     assert doc["devices"] == 2 and doc["steps"] == 3
     assert doc["compiled"].count("total") == 1, doc  # the loss and its gradient
-    assert doc["compiled"].count("per_filter") == 1, doc  # the held-out losses, before and after
+    assert doc["compiled"].count("per_lane") == 1, doc  # the held-out losses, before and after
 
 
 def test_cli_tune_writes_an_experiment_that_runs(tmp_path, monkeypatch, capsys):

@@ -25,8 +25,8 @@ from tracklab.config import load_experiment
 from tracklab.config.writeback import tuned_text
 from tracklab.filters.registry import KINDS
 from tracklab.output import TUNED_HEADER
-from tracklab.pytree import named_leaves, with_leaves
-from tracklab.studies.tune import decode, encode
+from tracklab.studies.tune import decode, encode, unwritable
+from tracklab.worlds.tracking.experiment import Experiment
 from tracklab.worlds.tracking.lanes import FilterSpec
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -214,28 +214,17 @@ def files(tmp_path_factory):
 
 
 def tuned_values(exp) -> dict:
-    """A tuned value, inside its constraint and away from the file's, for every parameter of every
-    filter (tracker, estimator) that a file can hold: {label: {name: value}}."""
-    values = {}
-    if hasattr(exp, "trackers"):
-        return {t.label: {"q_scale": 2.5, "r_scale": 0.5, "lam": 7.0} for t in exp.trackers if t.kind != "classical"}
-    if hasattr(exp, "estimators"):
-        return {e.label: {"q": 3.0 * e.q} for e in exp.estimators if e.train_steps == 0}
-    for fc in exp.filters:
-        if isinstance(fc, FilterSpec):
-            values[fc.label] = {"accel_var": 123.0} if "accel_var" in named_leaves(fc.params) else {}
-            continue
-        kind = KINDS[fc.kind]
-        names = [n for n, p in kind.params.items() if p.tune and p.write is not None and n in fc.params
-                 and not (n == "r" and exp.view(fc)[1].kind == "suite" and "r" not in _table(exp, fc))]
+    """A tuned value, inside its constraint and away from the file's, for every declared number of
+    every unit (filter, tracker, estimator) that a file can hold: {label: {name: value}}."""
+    declared, values = exp.declared(), exp.values(exp.params())
+    out = {}
+    for label, d in declared.items():
+        names = [n for n, p in d.items() if p.tune and p.write is not None
+                 and unwritable(exp, {label: {n: p.constraint}}) is None]  # r of several sensors: no field for it
         if names:
-            theta = jax.tree_util.tree_map(lambda u: u + 0.3, encode(kind, fc.params, names))
-            values[fc.label] = {n: np.asarray(v) for n, v in decode(kind, theta, fc.params).items() if n in names}
-    return {l: v for l, v in values.items() if v}
-
-
-def _table(exp, fc):
-    return next(t for t, f in zip(exp.raw["filter"], exp.filters) if f is fc)
+            theta = jax.tree_util.tree_map(lambda u: u + 0.3, encode({n: d[n].constraint for n in names}, values[label]))
+            out[label] = {n: np.asarray(v) for n, v in decode({n: d[n].constraint for n in names}, theta).items()}
+    return out
 
 
 def relabelled(structure, renamed):
@@ -248,17 +237,7 @@ def relabelled(structure, renamed):
 
 def expected_params(exp, values):
     """The original's params with the tuned numbers put in."""
-    params = exp.params()
-    if hasattr(exp, "with_tuned"):
-        return exp.with_tuned(params, values)
-    filters = []
-    for fc, p in zip(exp.filters, params.filters):
-        tuned = values.get(fc.label, {})
-        if isinstance(fc, FilterSpec):
-            filters.append(with_leaves(p, tuned) if tuned else p)
-        else:
-            filters.append({k: np.asarray(tuned.get(k, v), float) for k, v in p.items()})
-    return params._replace(filters=filters)
+    return exp.with_values(exp.params(), values)
 
 
 def comments(text) -> list[tuple]:
@@ -310,11 +289,11 @@ def test_a_tuned_file_is_the_file_with_only_the_tuned_numbers_changed(files, tmp
         assert not lost, f"{path.name}: comments lost: {lost}"
         tuned = load_experiment(out)
         assert tuned.name == f"{exp.name}_tuned" and not getattr(tuned, "studies", [])
-        renamed = {l: f"{l}, tuned" for l in values} if not hasattr(exp, "estimators") else {}
+        renamed = {l: f"{l}, tuned" for l in values} if exp.relabel_tuned else {}
         assert tuned.baseline == renamed.get(exp.baseline, exp.baseline)
         # the same experiment: what it is compiled for, and every number, but the tuned ones
         a, b = tuned.structure(), relabelled(exp.structure(), renamed)
-        if hasattr(exp, "filters"):  # a filter of one's own is structure by identity: its kind and sees
+        if isinstance(exp, Experiment):  # the same filter of one's own, traced anew: its code
             a = dataclasses.replace(a, filters=tuple((f.label, f.kind, f.sensors) if isinstance(f, FilterSpec) else f
                                                      for f in a.filters))
             b = dataclasses.replace(b, filters=tuple((f.label, f.kind, f.sensors) if isinstance(f, FilterSpec) else f
@@ -329,14 +308,14 @@ def test_a_tuned_file_is_the_file_with_only_the_tuned_numbers_changed(files, tmp
         if values:  # and not vacuously: the tuned numbers moved
             assert any(not np.array_equal(np.asarray(x), np.asarray(y)) for x, y in
                        zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(exp.params()))), path.name
-    from tracklab.worlds.airborne.experiment import TRACKERS
-    from tracklab.worlds.servo.experiment import ESTIMATOR_KINDS
-    from tracklab.scenarios import SCENARIO_KINDS
+    from tracklab.worlds.airborne.registry import TRACKERS
+    from tracklab.worlds.servo.registry import ESTIMATORS
+    from tracklab.scenarios import SCENARIOS
     from tracklab.sensors import SENSOR_KINDS
 
     own = {k for seen in kinds.values() for k in seen if ":" in k}
-    assert kinds["scenario"] >= set(SCENARIO_KINDS) and kinds["sensor"] >= set(SENSOR_KINDS)
-    assert kinds["filter"] >= set(KINDS) and kinds["tracker"] >= set(TRACKERS) and kinds["estimator"] >= set(ESTIMATOR_KINDS)
+    assert kinds["scenario"] >= set(SCENARIOS) and kinds["sensor"] >= set(SENSOR_KINDS)
+    assert kinds["filter"] >= set(KINDS) and kinds["tracker"] >= set(TRACKERS) and kinds["estimator"] >= set(ESTIMATORS)
     assert {"own_filter:converted_kf", "mine:truth", "mine:radar"} <= own
 
 

@@ -5,6 +5,8 @@ settings it is measured with (one CPU device per core, single-threaded Eigen ker
 64-bit mode); the ``tracklab`` command calls it first thing (``tracklab.runtime``).
 """
 
+__version__ = "0.1.0"  # first: modules below read it while the package is being imported
+
 from tracklab import filters, models, scenarios, sensors
 from tracklab.config import load_experiment
 from tracklab.config.python import experiment
@@ -20,7 +22,6 @@ from tracklab.studies.tune import tune
 from tracklab.worlds.tracking.lanes import FilterSpec
 from tracklab.worlds.tracking.outcome import MonteCarloResult, monte_carlo
 
-__version__ = "0.1.0"
 
 __all__ = [
     "Filter", "FilterContext", "FilterResult", "FilterSpec", "Layout", "Meas", "MonteCarloResult", "Out", "Param", "Prior",

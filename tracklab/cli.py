@@ -55,7 +55,7 @@ def cmd_run(args) -> int:
     from tracklab.report.tables import markdown_table
 
     exp = load_experiment(args.experiment)
-    per_run = getattr(exp, "ticks", exp.steps)  # closed loops: radar samples or servo ticks
+    per_run = exp.samples_per_run  # steps; closed loops: radar samples or servo ticks
     if args.runs is not None and (args.runs > MAX_RUNS or args.runs * per_run > 10**12):
         raise ConfigError(args.experiment, "--runs", args.runs, f"must be <= {MAX_RUNS} and runs x steps <= 1e12")
     target = args.precision
@@ -74,7 +74,7 @@ def cmd_run(args) -> int:
 
     extra = {"target_precision": target} if target is not None else {}
     if writes():  # what would otherwise be minutes without a line (a DEKF trained first)
-        for line in getattr(exp, "before_runs", list)():
+        for line in exp.before_runs():
             print(f"{exp.name}: {line}", file=sys.stderr, flush=True)
     doc = exp.run(runs=runs, seed=args.seed, out=out, progress=progress, figures=not args.no_figures,
                   precision="float32" if args.float32 else None, max_memory=args.max_memory, **extra)
@@ -93,10 +93,11 @@ def cmd_run(args) -> int:
 def cmd_list(args) -> int:
     from tracklab.config.factories import kinds_of_ones_own
     from tracklab.filters.factory import declared
-    from tracklab.worlds.airborne.experiment import TRACKERS
+    from tracklab.worlds.airborne.registry import TRACKERS
     from tracklab.worlds.servo.experiment import TARGET_KINDS
+    from tracklab.worlds.servo.registry import ESTIMATORS
     from tracklab.filters.registry import KINDS
-    from tracklab.scenarios import SCENARIO_KINDS
+    from tracklab.scenarios import SCENARIOS
     from tracklab.sensors import SENSOR_KINDS
 
     folder = Path(args.dir)
@@ -126,12 +127,22 @@ def cmd_list(args) -> int:
         print(f"  {k:<16} {desc}")
     print(f"  {own:<16} your own: factory(Context(dt, steps, dim), **keys) -> CustomSensor(h, R, angles=...)")
     print("scenarios:")
-    for k, desc in SCENARIO_KINDS.items():
-        print(f"  {k:<16} {desc}")
+    for k in SCENARIOS.values():
+        print(f"  {k.name:<16} {k.doc}")
+        if k.params:
+            print(f"  {'':<16}   {', '.join(p.describe(n) for n, p in k.params.items())}")
     print(f"  {own:<16} your own: factory(Context(dt, steps, dim), **keys) -> a scenario, or truth(key)")
     print("airborne-radar trackers ([[tracker]] of an [airborne] file, paper 001):")
-    for k, desc in TRACKERS.items():
-        print(f"  {k:<16} {desc}")
+    for k in TRACKERS.values():
+        print(f"  {k.name:<16} {k.doc}")
+        fields = [p.describe(n) for n, p in k.params.items()] + [f"{n} = {c[0]} ({' | '.join(c)})"
+                                                                  for n, c in k.choices.items()]
+        if fields:
+            print(f"  {'':<16}   {', '.join(fields)}")
+    print("servo estimators ([[estimator]] of a [servo] file, paper 003):")
+    for k in ESTIMATORS.values():
+        print(f"  {k.name:<16} {k.doc}")
+        print(f"  {'':<16}   {', '.join([p.describe(n) for n, p in k.params.items()] + [o.describe(n) for n, o in k.options.items()])}")
     print("servo modes ([[case]] of a [servo] file, paper 003): double_loop, velocity_lag, on_axis")
     print("servo targets ([target] of a [servo] file):")
     for k, desc in TARGET_KINDS.items():
@@ -143,30 +154,24 @@ def cmd_tune(args) -> int:
     import math
 
     from tracklab.config import load_experiment
-    from tracklab.filters.registry import TUNABLE, declarations
     from tracklab.studies.files import check_tune, run_tune
-    from tracklab.worlds.tracking.errors import LOSSES
 
     exp = load_experiment(args.experiment)
     names = [n.strip() for n in args.params.split(",") if n.strip()]
-    closed = hasattr(exp, "tune_losses")  # an airborne or servo file
-    bad = [n for n in names if n not in exp.tune_names]
+    declared = exp.declared()
+    tunable = list(dict.fromkeys(n for d in declared.values() for n, p in d.items() if p.tune))
+    bad = [n for n in names if n not in tunable]
     if not names or bad:
         raise ConfigError(args.experiment, "--params", args.params, f"must name parameters among "
-                          f"{', '.join(exp.tune_names) or '(none: no filter here declares a tunable number)'}")
-    unfiled = None if closed else next((n for n in names if all(p.write is None for p in declarations(n))
-                                        and n in TUNABLE), None)
-    if unfiled:
-        raise ConfigError(args.experiment, "--params", args.params, f"{unfiled} ({declarations(unfiled)[0].doc}) is tuned "
-                          "through the Python API, tracklab.tune.tune; a file holds none")
-    losses = list(exp.tune_losses) if closed else list(LOSSES)
+                          f"{', '.join(tunable) or '(none: no filter here declares a tunable number)'}")
+    losses = list(exp.tune_losses)
     args.loss = args.loss or losses[0]
     if args.loss not in losses:
         raise ConfigError(args.experiment, "--loss", args.loss, f"must be one of {', '.join(losses)}")
     if not (args.lr > 0 and math.isfinite(args.lr)):
         raise ConfigError(args.experiment, "--lr", args.lr, "must be a finite number > 0")
     labels = [l.strip() for l in args.filters.split(",")] if args.filters else None
-    known = [e.label for e in getattr(exp, "filters", None) or getattr(exp, "trackers", None) or exp.estimators]
+    known = exp.tables()[1]
     if labels is not None and (not labels or any(l not in known for l in labels)):
         raise ConfigError(args.experiment, "--filters", args.filters, f"must name filter labels from: {', '.join(known)}")
     folder = Path(args.results) if args.results else Path("results") / f"{exp.name}_tune"

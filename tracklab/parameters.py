@@ -39,6 +39,12 @@ class Constraint:
     from_free: Callable | None = None
     scalable: bool = False
     members: tuple[str, ...] = ()  # parameters transformed together; empty: each on its own
+    says: str = ""  # what a file's value must be, in words (default: in ``bounds``)
+
+    @property
+    def requirement(self) -> str:
+        """What a value must be, as a one-line refusal says it."""
+        return self.says or f"in {self.bounds}"
 
     @property
     def tunable(self) -> bool:
@@ -97,17 +103,17 @@ class StabilityRegion(Constraint):
 
 
 # variances, the tracking index, the STF's weakening factor: logarithms
-positive = Constraint(f"[1e-300, {MAX_MAGNITUDE:g}]", lambda v: (v >= 1e-300) & (v <= MAX_MAGNITUDE),
-                      to_free=jnp.log, from_free=jnp.exp, scalable=True)
+positive = Constraint(f"(0, {MAX_MAGNITUDE:g}]", lambda v: (v >= 1e-300) & (v <= MAX_MAGNITUDE),
+                      to_free=jnp.log, from_free=jnp.exp, scalable=True, says="a number > 0")
 # forgetting factors: logit
 unit_interval = Constraint("(0, 1]", lambda v: (v > 0) & (v <= 1),
                            to_free=lambda v: jax.scipy.special.logit(jnp.minimum(v, 1.0 - 1e-6)),
                            from_free=jax.nn.sigmoid, scalable=True)
 # network weights: as they are
-free = Constraint("(-inf, inf)", np.isfinite, to_free=lambda v: v, from_free=lambda v: v)
+free = Constraint("(-inf, inf)", np.isfinite, to_free=lambda v: v, from_free=lambda v: v, says="a finite number")
 stable_gains = StabilityRegion()
 # fixed by the file, never tuned
-nonnegative = Constraint(f"[0, {MAX_MAGNITUDE:g}]", lambda v: (v >= 0) & (v <= MAX_MAGNITUDE))
+nonnegative = Constraint(f"[0, {MAX_MAGNITUDE:g}]", lambda v: (v >= 0) & (v <= MAX_MAGNITUDE), says="a number >= 0")
 probabilities = Constraint("[0, 1], summing to 1", lambda v: (v >= 0) & (v <= 1))
 
 
@@ -187,6 +193,24 @@ class Param:
         if d is None:
             return f"{name}{unit}"
         if callable(d):
-            return f"{name}{unit} = {getattr(d, '__doc__', None) or 'from the context'}".strip()
+            return f"{name}{unit} = from the context"
         shown = f"[{', '.join(f'{v:g}' for v in d)}]" if isinstance(d, tuple) else f"{d:g}"
         return f"{name}{unit} = {shown}"
+
+
+@dataclass(frozen=True)
+class Option:
+    """A structural field of a kind's table, declared once: an integer in [lo, hi], or one of
+    ``choices`` (strings); what the program is compiled for, or how a run is set up (a network's
+    size, a training's steps), never one of its numbers."""
+
+    doc: str
+    default: int | str
+    choices: tuple[str, ...] = ()
+    lo: int | None = None
+    hi: int | None = None
+
+    def describe(self, name) -> str:
+        """``name = default`` with what it may be, as `tracklab list` shows it."""
+        allowed = " | ".join(self.choices) if self.choices else f"{self.lo}…{self.hi}"
+        return f"{name} = {self.default!r} ({allowed})"

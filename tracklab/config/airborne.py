@@ -76,10 +76,12 @@ import numpy as np
 
 from tracklab.worlds.airborne.engagement import Engagement, nominal_range
 from tracklab.config.fields import (MAX_RUN_STEPS, WINDOW_NAME_RE, Section, auto_runs, check_sections, check_unique,
-                                    experiment_header, level_and_baseline)
+                                    declared_numbers, experiment_header, level_and_baseline)
 from tracklab.errors import ConfigError
 from tracklab.worlds.airborne.closed_loop import MRAD
-from tracklab.worlds.airborne.experiment import MAX_TICKS, TRACKER_KINDS, AirborneExperiment, TrackerConfig
+from tracklab.worlds.airborne.experiment import MAX_TICKS, AirborneExperiment, TrackerConfig
+from tracklab.worlds.airborne.registry import TRACKERS
+from tracklab.worlds.airborne.tracker import Setting, Timing
 
 
 def _read_windows(f, rp: Section, duration, disturbance):
@@ -182,37 +184,17 @@ def parse_airborne(f: Path, raw: dict) -> AirborneExperiment:
     if not isinstance(tables, list) or not tables:
         raise ConfigError(f, "[[tracker]]", tables, "at least one [[tracker]] table is required")
     trackers, labels, trimmed = [], set(), set()
+    setting = Setting(eng, noise, tuple(float(g) for g in gains), acquisition, Timing(sample_dt, average, lag))
     for i, table in enumerate(tables, start=1):
         ts = Section(f, f"tracker[{i}]", table)
-        kind = ts.string("kind", required=True, choices=TRACKER_KINDS)
-        label = ts.label("label", kind)
+        kind = TRACKERS[ts.string("kind", required=True, choices=tuple(TRACKERS))]
+        label = ts.label("label", kind.name)
         check_unique(f, f"tracker[{i}].label", label, trimmed, "trackers")
         labels.add(label)
-        if kind == "classical":
-            ts.check_unknown()
-            trackers.append(TrackerConfig(label, kind))
-            continue
-        lam = ts.number("lam", 5.0, positive=True, hi=1000.0)
-        q_scale = ts.number("q_scale", 1.0, positive=True)
-        r_scale = ts.number("r_scale", 1.0, positive=True)
-        rv = ts.string("range_velocity", "coupled", choices=("coupled", "separate")) if kind == "decoupled" else "coupled"
-        model = ()
-        if any(ts.has(k) for k in ("sigma_m", "tau", "sigma_r", "tau_r")):
-            model = (ts.number("sigma_m", eng.singer_sigma, positive=True), ts.number("tau", eng.singer_tau, positive=True),
-                     ts.number("sigma_r", eng.singer_sigma, positive=True), ts.number("tau_r", eng.singer_tau, positive=True))
-        levels, p_stay = (), 0.99
-        if kind == "moose":
-            levels = ts.get("levels", [-40.0, -20.0, 0.0, 20.0, 40.0])
-            if (not isinstance(levels, list) or not 2 <= len(levels) <= 21 or len(set(levels)) != len(levels)
-                    or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or abs(v) > 1000
-                           for v in levels)):
-                raise ConfigError(f, f"tracker[{i}].levels", levels, "must be 2-21 distinct numbers (m/s²) of magnitude <= 1000")
-            levels = tuple(float(v) for v in levels)
-            p_stay = ts.number("p_stay", 0.99)
-            if not 0.0 < p_stay < 1.0:
-                raise ConfigError(f, f"tracker[{i}].p_stay", p_stay, "must be in (0, 1)")
+        choices = {k: ts.string(k, allowed[0], choices=allowed) for k, allowed in kind.choices.items()}
+        numbers = declared_numbers(ts, kind.params, setting)
         ts.check_unknown()
-        trackers.append(TrackerConfig(label, kind, lam, q_scale, r_scale, rv, model, levels, p_stay))
+        trackers.append(TrackerConfig(label, kind.name, numbers, choices))
     rp = Section(f, "report", raw.get("report", {}))
     windows = _read_windows(f, rp, duration, disturbance)
     level, baseline = level_and_baseline(rp, [t.label for t in trackers], "trackers")

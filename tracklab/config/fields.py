@@ -12,6 +12,8 @@ import re
 import tomllib
 from pathlib import Path
 
+import numpy as np
+
 from tracklab.errors import ConfigError
 from tracklab.toml_fields import MAX_MAGNITUDE
 
@@ -103,6 +105,42 @@ class Section:
             k = unknown[0]
             allowed = ", ".join(sorted(self.used | set(extra)))
             raise self._err(k, self.table[k], f"unknown field (allowed here: {allowed})")
+
+
+def declared_numbers(sec: Section, params, context=None) -> dict:
+    """The numbers a kind declares (name -> ``Param``) as a table gives them — a number, or a list
+    where the default is one — else their defaults (of ``context`` where a default is a function
+    of it), each checked against its constraint: name -> float or tuple of floats."""
+    out = {}
+    for name, p in params.items():
+        default = p.value(context)
+        v = sec.get(name, default)
+        if v is None:
+            raise sec._err(name, None, "is required (a number)")
+        listed = isinstance(default, (tuple, list))
+        if listed:
+            ok = isinstance(v, (list, tuple)) and all(not isinstance(x, bool) and isinstance(x, (int, float)) for x in v)
+        else:
+            ok = not isinstance(v, bool) and isinstance(v, (int, float))
+        if not ok:
+            raise sec._err(name, v, "must be a list of numbers" if listed else "must be a number")
+        a = np.asarray(v, float)
+        if not np.all(np.isfinite(a)) or np.any(np.abs(a) > MAX_MAGNITUDE) or not p.constraint.contains({name: a}):
+            raise sec._err(name, v, f"must be {p.constraint.requirement}" + (f" ({p.unit})" if p.unit else ""))
+        out[name] = tuple(float(x) for x in a) if listed else float(a)
+    return out
+
+
+def declared_options(sec: Section, options) -> dict:
+    """The structural fields a kind declares (name -> ``Option``) as a table gives them, else their
+    defaults: an integer in its range, or one of its strings."""
+    out = {}
+    for name, o in options.items():
+        if o.choices:
+            out[name] = sec.string(name, o.default, choices=o.choices)
+        else:
+            out[name] = sec.integer(name, o.default, lo=o.lo, hi=o.hi)
+    return out
 
 
 def check_unique(f, field: str, label: str, seen: set, what: str):

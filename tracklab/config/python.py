@@ -20,6 +20,7 @@ from tracklab.config.tracking import _parse_filter, _pred_windows
 from tracklab.errors import ConfigError
 from tracklab.worlds.tracking.experiment import Experiment, FilterConfig
 from tracklab.filters.core import Filter
+from tracklab.scenarios import Scenario
 from tracklab.sensors import SENSOR_KINDS, SENSOR_SIGMAS, CustomSensor, Sensor, SensorSuite
 from tracklab.worlds.tracking.lanes import FilterSpec
 
@@ -118,10 +119,10 @@ def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: in
         raise ConfigError(WHERE, "target_precision", target_precision, "must be a relative half-width in (0, 1)")
     if precision not in ("float64", "float32"):
         raise ConfigError(WHERE, "precision", precision, "must be float64 or float32")
-    if not all(hasattr(scenario, a) for a in ("simulate", "dt", "steps", "dim")):
+    if not isinstance(scenario, Scenario):
         raise ConfigError(WHERE, "scenario", type(scenario).__name__, "must be a tracklab scenario (tracklab.scenarios; "
                           "Generated(truth, dt=…, steps=…, dim=…) for a truth function of one's own)")
-    why = scenario.problem() if hasattr(scenario, "problem") else None
+    why = scenario.problem()
     if why:
         raise ConfigError(WHERE, "scenario", type(scenario).__name__, why)
     dt, steps, dim = float(scenario.dt), int(scenario.steps), int(scenario.dim)
@@ -133,7 +134,7 @@ def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: in
         if k not in ("pos_sigma", "vel_sigma", "acc_sigma") or not np.isfinite(v) or v <= 0:
             raise ConfigError(WHERE, f"prior.{k}", v, "pos_sigma, vel_sigma, acc_sigma: numbers > 0")
 
-    default_q = float(np.asarray(getattr(getattr(scenario, "scenario", scenario), "accel_sigma", 1.0)))
+    default_q = float(np.asarray(scenario.accel_sigma))
     entries, labels, trimmed = [], set(), set()
     for i, fc in enumerate(filters or [], start=1):
         where = f"filters[{i - 1}]"

@@ -51,11 +51,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from tracklab.config.fields import (MAX_RUN_STEPS, Section, auto_runs, check_sections, check_unique, experiment_header,
-                                    level_and_baseline)
+from tracklab.config.fields import (MAX_RUN_STEPS, Section, auto_runs, check_sections, check_unique, declared_numbers,
+                                    declared_options, experiment_header, level_and_baseline)
 from tracklab.errors import ConfigError
-from tracklab.worlds.servo.experiment import CAMERA_LOOPS, ESTIMATOR_KINDS, MAX_TICKS, TARGET_KINDS, TICK_RANGE, Case, EstimatorConfig, ServoExperiment
+from tracklab.worlds.servo.experiment import CAMERA_LOOPS, MAX_TICKS, TARGET_KINDS, TICK_RANGE, Case, EstimatorConfig, ServoExperiment
 from tracklab.worlds.servo.loops import MODES, AzimuthAxis
+from tracklab.worlds.servo.registry import ESTIMATORS
 
 
 def _check_latency(f, delay, frame_dt, mode):
@@ -120,22 +121,13 @@ def parse_servo(f: Path, raw: dict) -> ServoExperiment:
         raise ConfigError(f, "[[estimator]]", tables, "must be [[estimator]] tables")
     for i, table in enumerate(tables, start=1):
         es = Section(f, f"estimator[{i}]", table)
-        ekind = es.string("kind", required=True, choices=ESTIMATOR_KINDS)
-        label = es.label("label", ekind)
+        kind = ESTIMATORS[es.string("kind", required=True, choices=tuple(ESTIMATORS))]
+        label = es.label("label", kind.name)
         if label.strip() == "perfect":
             raise ConfigError(f, f"estimator[{i}].label", label, "must not be 'perfect' (a case's ideal estimator)")
         check_unique(f, f"estimator[{i}].label", label, trimmed, "estimators")
         labels.add(label)
-        cfg = EstimatorConfig(label, ekind, es.number("q", 1.0, positive=True))
-        if ekind == "dekf":
-            lam = es.number("lam", 0.999)
-            if not 0.0 < lam <= 1.0:
-                raise ConfigError(f, f"estimator[{i}].lam", lam, "the forgetting factor must be in (0, 1]")
-            cfg = EstimatorConfig(label, ekind, cfg.q, es.integer("hidden", 4, lo=1, hi=256),
-                                  es.string("reading", "residual", choices=("residual", "literal")), lam,
-                                  es.number("r_e", 0.5, positive=True), es.number("pw0", 1e-4, positive=True),
-                                  es.integer("seed", 0, lo=0, hi=2**32 - 1), es.integer("train_steps", 0, lo=0, hi=100_000),
-                                  es.number("train_lr", 1e-3, positive=True), es.integer("train_runs", 8, lo=1, hi=100_000))
+        cfg = EstimatorConfig(label, kind.name, declared_numbers(es, kind.params), declared_options(es, kind.options))
         es.check_unknown()
         estimators.append(cfg)
     cases, case_labels, case_trimmed = [], set(), set()

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from tracklab.config.fields import (MAX_RUN_STEPS, MAX_RUNS, MAX_STEPS, NAME_RE, WINDOW_NAME_RE, Section, auto_runs,
-                                    check_sections, check_unique, experiment_header, level_and_baseline)
+                                    check_sections, check_unique, declared_numbers, experiment_header, level_and_baseline)
 from tracklab.config import factories
 from tracklab.config.factories import is_factory
 from tracklab.config.studies import parse_studies
@@ -26,10 +26,9 @@ from tracklab.filters.factory import declared
 from tracklab.filters.kind import Entry
 from tracklab.filters.registry import KINDS
 from tracklab.montecarlo.statistics import REPORT_WINDOW
-from tracklab.scenarios import (SCENARIO_KINDS, ConstantVelocity, Crossing, Generated, Manoeuvre, MountFrame, Overflight, Sine,
-                                 Trajectory, TrajectoryError, read_csv)
+from tracklab.scenarios import SCENARIOS, Generated, MountFrame, Scenario, ScenarioContext
 from tracklab.sensors import SENSOR_KINDS, SENSOR_SIGMAS, CustomSensor, Sensor, SensorSuite
-from tracklab.toml_fields import MAX_MAGNITUDE, sigma_list as _sigma_list
+from tracklab.toml_fields import sigma_list as _sigma_list
 from tracklab.worlds.tracking.lanes import FilterSpec
 
 SENSOR_DIM = {"polar": 2, "spherical": 3, "angles": 3, "mount": 3}  # dimension of the truth they observe
@@ -132,15 +131,15 @@ def _own_scenario(f, sc, kind, dt, steps, dim, folders=()):
     returns a scenario, or a function of a run's key giving its truth (steps + 1, 2·dim)."""
     options = {k: sc.get(k) for k in sc.table if k != "kind"}
     made = factories.build(f, "scenario.kind", kind, factories.Context(dt, steps, dim), options, folders)
-    if callable(made) and not hasattr(made, "simulate"):
+    if callable(made) and not isinstance(made, Scenario):
         made = _generated(f, kind, made, dt, steps)
-    if not hasattr(made, "simulate") or not hasattr(made, "dim"):
+    if not isinstance(made, Scenario):
         raise ConfigError(f, "scenario.kind", kind, f"the factory returned {type(made).__name__}: expected a scenario "
-                          "or a function of a run's key giving its truth (steps + 1, 2·dim)")
-    if getattr(made, "dt", None) != dt or getattr(made, "steps", None) != steps:
-        raise ConfigError(f, "scenario.kind", kind, f"the factory's scenario has dt = {getattr(made, 'dt', None)}, "
-                          f"steps = {getattr(made, 'steps', None)}: the experiment has {dt}, {steps}")
-    why = made.problem() if hasattr(made, "problem") else None
+                          "(tracklab.scenarios) or a function of a run's key giving its truth (steps + 1, 2·dim)")
+    if made.dt != dt or made.steps != steps:
+        raise ConfigError(f, "scenario.kind", kind, f"the factory's scenario has dt = {made.dt}, steps = {made.steps}: "
+                          f"the experiment has {dt}, {steps}")
+    why = made.problem()
     if why:
         raise ConfigError(f, "scenario.kind", kind, f"the factory's scenario: {why}")
     return made
@@ -161,41 +160,20 @@ def _generated(f, kind, fn, dt, steps):
     return Generated(fn, dt=dt, steps=steps, dim=shape[1] // 2)
 
 
-def _numbers(v, counts):
-    """A TOML list of ``counts`` (allowed lengths) finite numbers as a tuple of floats; None if it is not one."""
-    if (not isinstance(v, list) or len(v) not in counts
-            or any(isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) or abs(x) > MAX_MAGNITUDE
-                   for x in v)):
-        return None
-    return tuple(float(x) for x in v)
+class _Fields:
+    """A [scenario] table's fields as a scenario kind's ``build`` reads them: typed, one-line refusals
+    (a key with a dot names another section's field)."""
 
+    def __init__(self, section: Section):
+        self.section = section
+        self.get, self.has, self.number, self.integer, self.string = (section.get, section.has, section.number,
+                                                                      section.integer, section.string)
 
-def _manoeuvre(f, sc, dt, steps, sensor_dim):
-    """[scenario] kind = "manoeuvre": ``initial`` [x, vx, y, vy(, z, vz)] and ``segments``, a list of
-    tables {duration (s), turn_g (g, + left), accel (m/s², along the velocity)}; what the flight
-    as a whole must keep (a moving target) is the scenario's own check."""
-    init = _numbers(sc.get("initial"), (4, 6))
-    if init is None:
-        raise ConfigError(f, "scenario.initial", sc.get("initial"), "must be 4 or 6 finite numbers [x, vx, y, vy(, z, vz)]")
-    dim = len(init) // 2
-    if sensor_dim is not None and dim != sensor_dim:
-        raise ConfigError(f, "scenario.initial", list(init), f"is {dim}-D: the sensors observe {sensor_dim}-D positions")
-    table = sc.get("segments")
-    if not isinstance(table, list) or not table:
-        raise ConfigError(f, "scenario.segments", table, "must be a list of at least one table {duration, turn_g, "
-                          "accel} (a straight flight: kind = \"constant_velocity\")")
-    segments = []
-    for j, seg in enumerate(table, start=1):
-        ss = Section(f, f"scenario.segments[{j}]", seg)
-        segments.append((ss.number("duration", required=True, positive=True),
-                         ss.number("turn_g", 0.0, lo=-100.0, hi=100.0), ss.number("accel", 0.0, lo=-1000.0, hi=1000.0)))
-        ss.check_unknown()
-    scenario = Manoeuvre(dt=dt, steps=steps, initial=init, segments=tuple(segments))
-    why = scenario.problem()
-    if why:
-        at_start = why.startswith("initial")
-        raise ConfigError(f, "scenario.initial" if at_start else "scenario.segments", list(init) if at_start else table, why)
-    return scenario
+    def error(self, key, value, allowed) -> ConfigError:
+        return ConfigError(self.section.file, key if "." in key else f"scenario.{key}", value, allowed)
+
+    def table(self, where, table) -> Section:
+        return Section(self.section.file, f"scenario.{where}", table)
 
 
 def parse_tracking(path: Path, raw: dict) -> Experiment:
@@ -229,61 +207,15 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
 
     sc = Section(f, "scenario", raw["scenario"])
     kind = sc.string("kind", required=True)
-    if kind not in SCENARIO_KINDS and not is_factory(kind):
+    if kind not in SCENARIOS and not is_factory(kind):
         raise ConfigError(f, "scenario.kind", kind,
-                          f"must be one of {', '.join(SCENARIO_KINDS)}, or \"package.module:factory\" (a truth of one's own)")
+                          f"must be one of {', '.join(SCENARIOS)}, or \"package.module:factory\" (a truth of one's own)")
     if is_factory(kind):
         scenario = _own_scenario(f, sc, kind, dt, steps, sensor_dim, folders)
-    elif kind == "manoeuvre":
-        scenario = _manoeuvre(f, sc, dt, steps, sensor_dim)
-    elif kind == "sine":
-        scenario = Sine(dt=dt, steps=steps, amplitude=sc.number("amplitude", 83.33, positive=True),
-                        omega=sc.number("omega", 0.6, positive=True), phase=sc.number("phase", 0.0))
-    elif kind == "overflight":
-        max_el = sc.number("max_elevation", 74.947)
-        if not 0.0 < max_el < 90.0:
-            raise ConfigError(f, "scenario.max_elevation", max_el, "must be an elevation in (0, 90) degrees")
-        scenario = Overflight(
-            dt=dt,
-            steps=steps,
-            altitude=sc.number("altitude", 8000.0, positive=True),
-            speed=sc.number("speed", 250.0, positive=True),
-            max_elevation=max_el,
-            t_closest=sc.number("t_closest", 75.0),
-            heading=sc.number("heading", 90.0),
-        )
-    elif kind == "crossing":
-        scenario = Crossing(
-            dt=dt,
-            steps=steps,
-            speed=sc.number("speed", 400.0),
-            offset=sc.number("offset", 20000.0),
-            start_x=sc.number("start_x", -20000.0),
-            accel_sigma=sc.number("accel_sigma", 1.0, nonneg=True),
-            altitude=sc.number("altitude", None),
-        )
-    elif kind == "constant_velocity":
-        init = _numbers(sc.get("initial"), (2, 4, 6))
-        if init is None:
-            raise ConfigError(f, "scenario.initial", sc.get("initial"), "must be 2, 4 or 6 finite numbers [x, vx(, y, vy(, z, vz))]")
-        scenario = ConstantVelocity(dt=dt, steps=steps, initial=init, accel_sigma=sc.number("accel_sigma", 0.0, nonneg=True))
     else:
-        p = sc.string("path", required=True)
-        try:
-            tpath = (path.parent / p).resolve()
-            read_csv(tpath)
-        except (RuntimeError, OSError) as e:  # a symbolic-link loop, a name too long, …
-            raise ConfigError(f, "scenario.path", p, f"trajectory file cannot be opened ({e.__class__.__name__})") from None
-        except TrajectoryError as e:
-            raise ConfigError(f, "scenario.path", p, f"trajectory file {e}") from None
-        dims = sc.integer("dims", sensor_dim or 3, lo=2, hi=3)
-        if sensor_dim is not None and dims != sensor_dim:
-            raise ConfigError(f, "scenario.dims", dims, f"must be {sensor_dim} for the sensors given")
-        start = sc.number("start", 0.0, nonneg=True)
-        scenario = Trajectory(path=str(tpath), dt=dt, steps=steps, dim=dims, start=start)
-        avail = scenario.max_steps()
-        if steps > avail:
-            raise ConfigError(f, "experiment.steps", steps, f"the trajectory from start = {start} s holds at most {avail} steps of {dt} s")
+        declared = SCENARIOS[kind]
+        scenario = declared.build(ScenarioContext(dt, steps, sensor_dim, path.parent), declared_numbers(sc, declared.params),
+                                  _Fields(sc))
     sc.check_unknown()
     dim = scenario.dim
     suite = _build_sensors(f, parsed_sensors, dim, dt, steps, folders)
@@ -307,7 +239,7 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
     if not isinstance(flist, list) or not flist:
         raise ConfigError(f, "[[filter]]", flist, "at least one [[filter]] table is required")
     filters, labels, trimmed = [], set(), set()
-    default_q = getattr(getattr(scenario, "scenario", scenario), "accel_sigma", 1.0)
+    default_q = scenario.accel_sigma
     for i, table in enumerate(flist, start=1):
         fc = _parse_filter(f, i, table, suite, dim, dt, default_q, scenario, folders)
         check_unique(f, f"filter[{i}].label", fc.label, trimmed, "filters")

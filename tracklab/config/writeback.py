@@ -4,11 +4,12 @@ The file is read again with tomlkit, which keeps what a person wrote — comment
 of tables and keys, number formats, inline tables, nested tables and arrays of tables — and
 only these change:
 
-* each tuned number, where its kind declares it goes (``Param.write``: ``q`` as ``q`` or as
-  the model's noise standard deviation, ``r`` as ``r`` or as the sensor's sigmas, …), or an
-  airborne tracker's / servo estimator's field of that name;
+* each tuned number, where its declaration says it goes (``Param.write``: ``q`` as ``q`` or
+  as the model's noise standard deviation, ``r`` as ``r`` or as the sensor's sigmas, …; any
+  other under its own name);
 * the experiment's name (``<name>_tuned``: its results go to their own folder) and each
-  tuned filter's (tracker's) label (``<label>, tuned``);
+  tuned filter's (tracker's) label (``<label>, tuned``; a servo's estimators keep theirs,
+  which its cases name);
 * the ``[[study]]`` tables are left out: the studies stay with the original file;
 * relative paths are rewritten to name the same files from the tuned copy's folder: a
   trajectory's ``scenario.path``, and, when a kind names a module of one's own
@@ -27,51 +28,37 @@ from pathlib import Path
 import tomlkit
 
 from tracklab.config.factories import is_factory
-from tracklab.filters.kind import WriteBack
-from tracklab.filters.registry import KINDS
-from tracklab.parameters import write_value
 from tracklab.output import TUNED_HEADER
-from tracklab.sensors import SENSOR_SIGMAS
-from tracklab.worlds.tracking.lanes import FilterSpec
+from tracklab.parameters import write_value
 
 
-def write_back(exp, fc) -> WriteBack:
-    """Where a built-in filter's tuned values go in its [[filter]] table (its model, what it sees)."""
-    _, meas = exp.view(fc)
-    return WriteBack(fc.model, meas.kind, SENSOR_SIGMAS.get(meas.kind, ()))
-
-
-def write_filters(exp, doc, values: dict):
-    """Write ``values`` ({label: {name: value}}) into the [[filter]] tables of ``doc`` (a parsed
-    open-loop file: plain dictionaries or tomlkit's), each as its kind declares; ValueError (one
-    line) for a value no field of the file can hold."""
-    for fc, table in zip(exp.filters, doc["filter"]):
-        tuned = values.get(fc.label)
-        if not tuned:
-            continue
-        if isinstance(fc, FilterSpec):  # a factory's filter: under the keyword of that name (as declared)
-            for n, v in tuned.items():
-                (fc.declared[n].write if n in fc.declared else write_value)(table, n, v)
-            continue
-        for name, p in KINDS[fc.kind].params.items():  # in the order the kind declares them
-            if name not in tuned:
-                continue
-            if p.write is None:
-                raise ValueError(f"filter {fc.label!r}: tuned {name} ({p.doc}) cannot be written into an experiment file")
+def write_values(exp, doc, values: dict):
+    """Write ``values`` ({label: {name: value}}) into the units' tables of ``doc`` (the parsed file:
+    plain dictionaries or tomlkit's), each where its declaration says (``Param.write``; a leaf of a
+    filter of one's own under its name); ValueError (one line) for a value no field can hold."""
+    section, labels = exp.tables()
+    declared = exp.declared()
+    for label, table in zip(labels, doc.get(section, [])):
+        for name, v in values.get(label, {}).items():
+            p = declared.get(label, {}).get(name)
+            if p is not None and p.write is None:
+                raise ValueError(f"{label!r}: tuned {name} ({p.doc}) cannot be written into an experiment file")
             try:
-                p.write(table, name, tuned[name], write_back(exp, fc))
+                (p.write if p is not None else write_value)(table, name, v, exp.write_where(label))
             except ValueError as e:
-                raise ValueError(f"filter {fc.label!r}: {e}") from None
+                raise ValueError(f"{label!r}: {e}") from None
 
 
 def _relabel(doc, exp, values: dict):
-    """Each tuned filter (airborne tracker) labelled ``<label>, tuned``, and ``[report] baseline``
-    with it. (A servo file's tuned estimators keep their labels, which its cases name.)"""
-    section, lanes = ("filter", exp.filters) if "filter" in doc else ("tracker", getattr(exp, "trackers", []))
+    """Each tuned unit labelled ``<label>, tuned`` (where the experiment's units are its lanes), and
+    ``[report] baseline`` with it."""
+    if not exp.relabel_tuned:
+        return
+    section, labels = exp.tables()
     renamed = {}
-    for lane, table in zip(lanes, doc.get(section, [])):
-        if values.get(lane.label):
-            renamed[lane.label] = table["label"] = f"{lane.label}, tuned"
+    for label, table in zip(labels, doc.get(section, [])):
+        if values.get(label):
+            renamed[label] = table["label"] = f"{label}, tuned"
     report = doc.get("report")
     if isinstance(report, dict) and report.get("baseline") in renamed:
         report["baseline"] = renamed[report["baseline"]]
@@ -117,10 +104,7 @@ def tuned_text(exp, values: dict, out_path) -> str:
     if "study" in doc:
         del doc["study"]
     doc["experiment"]["name"] = f"{exp.name}_tuned"
-    if hasattr(exp, "write_tuned"):  # airborne trackers, servo estimators
-        exp.write_tuned(doc, values)
-    else:
-        write_filters(exp, doc, values)
+    write_values(exp, doc, values)
     _relabel(doc, exp, values)
     _repoint(doc, source, Path(out_path).resolve().parent)
     return TUNED_HEADER + "\n" + tomlkit.dumps(doc)

@@ -85,7 +85,7 @@ def filter_context(scenario, seen, accel_sigma: float | None = None) -> FilterCo
     ``scenario``; ``accel_sigma`` by default the scenario's (0 when its truth has none)."""
     sensors = getattr(seen, "sensors", seen)
     if accel_sigma is None:
-        accel_sigma = float(np.asarray(getattr(getattr(scenario, "scenario", scenario), "accel_sigma", 0.0)))
+        accel_sigma = float(np.asarray(scenario.accel_sigma))
     return FilterContext(float(scenario.dt), int(scenario.steps), int(scenario.dim), cv(scenario.dim, scenario.dt),
                          float(accel_sigma), tuple(sensor_model(s) for s in sensors))
 

@@ -17,18 +17,17 @@ chunk of runs, ``chunk(params, keys, live, exclude) -> sums``, plus a hashable
 * ``live`` (B,) marks real runs (the last chunk and the devices' shares are
   padded with dead ones); ``exclude`` (lanes, B) marks runs left out of a lane's
   sums (a lane: one compared filter, tracker or case).
-* ``sums`` is a pytree of sums over the chunk's live runs. Each device keeps the
-  sums of its share of a chunk (the program passes nothing between devices, so no
-  device ever waits on another inside it); the host combines the devices' parts.
-  How the parts of a chunk, of the devices and of the chunks are combined follows from each leaf's
-  name (``combine_rule``): ``max…``/``min…`` are maxima/minima, ``_example…``
-  and ``example…`` belong to run 0 and are kept from the first chunk,
-  the top-level ``diverged_runs`` (lanes, B) flags per run, the top-level
+* ``sums`` is a ``Sums`` record over the chunk's live runs, whose fields say how their
+  parts (of the devices, the processes and the chunks) combine: ``add`` adds up,
+  ``max`` keeps the largest, ``first`` is run 0's (kept from the first chunk),
   ``per_run`` holds per-run samples (``values`` (lanes, Q, B), ``ok`` (lanes, B),
-  optionally ``kept`` (lanes, K, B)) streamed into ``samples.RunSamples``, everything
-  else adds up. A world that reports ``diverged_runs`` has its chunk run again with those runs
-  excluded from the start (a run drops out of the sums only from the step it
-  turns bad otherwise).
+  optionally ``kept`` (lanes, K, B)) streamed into ``samples.RunSamples``, and
+  ``diverged`` (lanes, B) flags the runs that turned bad: the chunk is run again with
+  them excluded from the start (a run drops out of the sums only from the step it
+  turns bad otherwise). Each device keeps the sums of its share of a chunk (the
+  program passes nothing between devices, so no device ever waits on another inside
+  it); the host combines the devices' parts. ``add``, ``max`` and ``first`` are
+  dictionaries whose keys do not collide; the caller gets them as one (``merged``).
 
 Several processes (``runtime.start_processes``: one per host or per GPU) share
 every chunk: process p runs its slice of the chunk's runs on its own devices, and
@@ -58,11 +57,38 @@ from tracklab.montecarlo.samples import RunSamples
 from tracklab.runtime import not_in_xla_flags
 
 
+class Sums(NamedTuple):
+    """A chunk's sums over its live runs, each field combined over parts by its own rule (see the
+    module's doc): ``add`` added, ``max`` the largest kept, ``first`` run 0's (the first part's),
+    ``per_run`` the runs' samples side by side, ``diverged`` the runs' flags side by side."""
+
+    add: Any = None
+    max: Any = None
+    first: Any = None
+    per_run: Any = None
+    diverged: Any = None
+
+
+def merged(sums: Sums) -> dict:
+    """``add``, ``max`` and ``first`` as one dictionary (nested dictionaries merged key by key)."""
+
+    def union(a, b):
+        if not isinstance(a, dict) or not isinstance(b, dict):
+            return b if a is None else a
+        return {k: union(a.get(k), b.get(k)) if k in a and k in b else (a[k] if k in a else b[k]) for k in {**a, **b}}
+
+    out: dict = {}
+    for part in (sums.add, sums.max, sums.first):
+        if part is not None:
+            out = union(out, part)
+    return out
+
+
 class World(NamedTuple):
     """What the runner needs of a world (see the module's doc)."""
 
     structure: Hashable  # all that ``chunk`` compiles to, besides the params' pytree structure and shapes
-    chunk: Callable  # (params, keys (B,), live (B,), exclude (lanes, B)) -> sums pytree; pure
+    chunk: Callable  # (params, keys (B,), live (B,), exclude (lanes, B)) -> Sums; pure
     lanes: int  # rows of ``exclude``
     chunk_size: int  # runs per chunk (a multiple of nothing in particular; padded for the devices)
     # XLA options its chunk programs compile with: (name, value) pairs; one that XLA_FLAGS names is
@@ -79,7 +105,7 @@ def world_compiler_options(world: World) -> dict | None:
 class Outcome:
     """What the runner hands back to the world that asked."""
 
-    sums: Any  # the sums over all runs (host, float64; ``example`` leaves from the first chunk)
+    sums: Any  # the sums over all runs (``merged``: host, float64; ``first`` leaves from the first chunk)
     runs: int
     chunk: int
     wall_s: float  # the whole call
@@ -88,46 +114,13 @@ class Outcome:
     samples: RunSamples | None = None  # the per-run samples' moments, when the world gives them
 
 
-def combine_rule(name: str) -> str:
-    """How a sums leaf named ``name`` is combined over parts: "max", "min", "first", "runs" or "add"."""
-    if name.startswith(("_example", "example")):
-        return "first"
-    if name in ("diverged_runs", "per_run"):
-        return "runs"
-    if name.startswith("max"):
-        return "max"
-    if name.startswith("min"):
-        return "min"
-    return "add"
-
-
-def _leaf_name(path) -> str:
-    """The rule-giving name of a leaf: the nearest dictionary key on its path that has a rule
-    other than adding, else its last key."""
-    keys = [str(getattr(p, "key", getattr(p, "name", ""))) for p in path]
-    for k in keys:
-        if combine_rule(k) in ("first", "runs"):
-            return k
-    return keys[-1] if keys else ""
-
-
-def combine_devices(parts, B, xp=np):
-    """One chunk's sums from the devices' parts (leading axis: device), by each leaf's rule;
+def combine_devices(parts: Sums, B, xp=np) -> Sums:
+    """One chunk's sums from the devices' parts (leading axis: device), each field by its rule;
     ``xp``: numpy on the host, jax.numpy inside a traced function."""
-
-    def leaf(path, v):
-        rule = combine_rule(_leaf_name(path))
-        if rule == "first":  # run 0 lives on the first device
-            return v[0]
-        if rule == "runs":
-            return xp.moveaxis(v, 0, -2).reshape(v.shape[1:-1] + (-1,))[..., :B]
-        if rule == "max":
-            return xp.max(v, axis=0)
-        if rule == "min":
-            return xp.min(v, axis=0)
-        return xp.sum(v, axis=0)
-
-    return jax.tree_util.tree_map_with_path(leaf, parts)
+    side_by_side = lambda v: xp.moveaxis(v, 0, -2).reshape(v.shape[1:-1] + (-1,))[..., :B]  # noqa: E731
+    tree = jax.tree_util.tree_map
+    return Sums(tree(lambda v: xp.sum(v, axis=0), parts.add), tree(lambda v: xp.max(v, axis=0), parts.max),
+                tree(lambda v: v[0], parts.first), tree(side_by_side, parts.per_run), tree(side_by_side, parts.diverged))
 
 
 def host_sums(parts, B, lead=0):
@@ -174,7 +167,7 @@ def per_device(world: World, devices=None) -> Callable:
 
 
 def sharded(world: World) -> Callable:
-    """``(params, key, idx, live, exclude) -> sums`` of the runs ``idx``: traceable (jit, grad,
+    """``(params, key, idx, live, exclude) -> sums`` (``merged``) of the runs ``idx``: traceable (jit, grad,
     vmap over params), the devices' parts combined inside the function (tuning differentiates
     through the combined sums). The runs are split over every process's devices: in a run of
     several processes, each runs its share and the combined sums (and so the gradients) are
@@ -182,7 +175,7 @@ def sharded(world: World) -> Callable:
     parts = per_device(world, jax.devices())
 
     def combined(params, key, idx, live, exclude):
-        return combine_devices(parts(params, key, idx, live, exclude), idx.shape[0], jnp)
+        return merged(combine_devices(parts(params, key, idx, live, exclude), idx.shape[0], jnp))
 
     return combined
 
@@ -260,36 +253,25 @@ def program(world: World, params, precision: str = "float64", points: int | None
 
 
 class Accumulator:
-    """Host-side sums over chunks, in float64, by each leaf's ``combine_rule``; per-run samples
-    (the top-level ``per_run``) streamed into ``samples``."""
+    """Host-side sums over chunks, in float64, each field by its rule; per-run samples streamed into
+    ``samples``."""
 
     def __init__(self):
         self.total = None
         self.samples = None
 
-    def add(self, sums):
-        sums = jax.tree_util.tree_map(lambda v: np.asarray(v), sums)
-        if isinstance(sums, dict) and "per_run" in sums:
-            sums = dict(sums)
-            per_run = sums.pop("per_run")
+    def add(self, sums: Sums):
+        sums = jax.tree_util.tree_map(np.asarray, sums)
+        if sums.per_run is not None:
             self.samples = self.samples or RunSamples()
-            self.samples.add(per_run["values"], per_run["ok"], per_run.get("kept"))
+            self.samples.add(sums.per_run["values"], sums.per_run["ok"], sums.per_run.get("kept"))
+        wide = lambda v: np.asarray(v, np.float64)  # noqa: E731
+        tree = jax.tree_util.tree_map
         if self.total is None:
-            self.total = jax.tree_util.tree_map_with_path(
-                lambda p, v: v if combine_rule(_leaf_name(p)) == "first" else np.asarray(v, np.float64), sums)
+            self.total = Sums(tree(wide, sums.add), tree(wide, sums.max), sums.first)
             return
-
-        def leaf(path, a, b):
-            rule = combine_rule(_leaf_name(path))
-            if rule == "first":
-                return a
-            if rule == "max":
-                return np.fmax(a, b)
-            if rule == "min":
-                return np.fmin(a, b)
-            return a + np.asarray(b, np.float64)
-
-        self.total = jax.tree_util.tree_map_with_path(leaf, self.total, sums)
+        self.total = Sums(tree(lambda a, b: a + wide(b), self.total.add, sums.add),
+                          tree(np.fmax, self.total.max, sums.max), self.total.first)
 
 
 def gather_processes(tree):
@@ -313,13 +295,6 @@ def gather_processes(tree):
 def pick(tree, j):
     """Parameter set (or its sums) ``j`` of a tree stacked along a leading axis (``points``)."""
     return jax.tree_util.tree_map(lambda a: np.asarray(a)[j], tree)
-
-
-def pop_diverged(sums: dict):
-    """``sums`` without its top-level ``diverged_runs`` (lanes, B), and those flags (None if absent)."""
-    sums = dict(sums)
-    flags = sums.pop("diverged_runs", None)
-    return sums, (None if flags is None else np.asarray(flags))
 
 
 def run(world: World, params, runs: int, key, *, precision: str = "float64", points: int | None = None,
@@ -353,9 +328,9 @@ def run(world: World, params, runs: int, key, *, precision: str = "float64", poi
         for c in range(n_chunks):
             idx = np.arange((c * n_proc + me) * B, (c * n_proc + me + 1) * B, dtype=np.uint32)
             args = (params, key, jnp.asarray(idx), jnp.asarray(idx < runs))
-            sums, flags = pop_diverged(combined(fn(*args, no_exclusion)))
-            if flags is not None and flags.any():  # the chunk again, those runs left out from their first step
-                sums, _ = pop_diverged(combined(fn(*args, jnp.asarray(flags))))
+            sums = combined(fn(*args, no_exclusion))
+            if sums.diverged is not None and sums.diverged.any():  # the chunk again, those runs left out from their first step
+                sums = combined(fn(*args, jnp.asarray(sums.diverged)))
             if n_proc > 1:  # every process's part of the chunk, in run order
                 sums = combine_devices(gather_processes(sums), B * n_proc)
             acc.add(sums)
@@ -365,4 +340,4 @@ def run(world: World, params, runs: int, key, *, precision: str = "float64", poi
             if enough is not None and done < runs and enough(acc.total, acc.samples, done):
                 runs, n_chunks = done, c + 1
                 break
-    return Outcome(acc.total, runs, B * n_proc, time.perf_counter() - t_start, compile_s, n_chunks, acc.samples)
+    return Outcome(merged(acc.total), runs, B * n_proc, time.perf_counter() - t_start, compile_s, n_chunks, acc.samples)

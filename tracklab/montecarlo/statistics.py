@@ -305,7 +305,7 @@ def with_intervals(result, filters, level=LEVEL, baseline=None):
     differences to the ``baseline`` filter (default the first) on their common runs."""
     labels = list(result.labels)
     windows = [n.split("@", 1)[1] for n, _ in result.sample_names if n.startswith("max_pred@")]
-    stats = sample_statistics(result.sample_names, tuple(getattr(result, "axes", AXES)), windows)
+    stats = sample_statistics(result.sample_names, tuple(result.axes), windows)
     diverged = {l: (filters[l]["summary"]["diverged"], filters[l]["summary"].get("runs", 0)) for l in labels}
     lanes = lane_intervals(result.samples, labels, stats, level, baseline, [k for k in PAIRED if k in stats],
                            diverged, kept=[(0, "err_pos_p{p}", "err_pos")])
@@ -328,7 +328,7 @@ def statistics(result, window, pred_windows=None, level=LEVEL, baseline=None):
     ``window`` the window they average over) every summary number has its ``level`` interval
     and each filter its paired differences to ``baseline`` (``with_intervals``).
     """
-    axes = tuple(getattr(result, "axes", AXES))
+    axes = tuple(result.axes)
     bounds = pcrlb_series(result.pcrlb, result.dim, axes)
     filters = {}
     for label in result.labels:
@@ -346,6 +346,6 @@ def statistics(result, window, pred_windows=None, level=LEVEL, baseline=None):
             runmax=runmax,
         )
         filters[label] = {"kind": result.kinds[label], "summary": summary, "series": series}
-    if getattr(result, "samples", None) is not None and tuple(result.report_window or ()) == tuple(window):
+    if result.samples is not None and tuple(result.report_window or ()) == tuple(window):
         with_intervals(result, filters, level, baseline)
     return {"bounds": bounds, "filters": filters, "level": level}

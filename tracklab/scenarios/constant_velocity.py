@@ -20,12 +20,14 @@ import numpy as np
 from tracklab import random
 from tracklab.linalg import mm
 from tracklab.models import cv
+from tracklab.parameters import Param, free, nonnegative
 from tracklab.pytree import static
+from tracklab.scenarios.kind import Scenario, ScenarioKind, numbers
 
 
 @jax.tree_util.register_dataclass
 @dataclass(frozen=True)
-class ConstantVelocity:
+class ConstantVelocity(Scenario):
     dt: float = static()
     steps: int = static()
     initial: tuple = ()  # CV layout, 2·dim values
@@ -76,3 +78,25 @@ def Crossing(dt, steps, speed=400.0, offset=20000.0, start_x=-20000.0, accel_sig
     """The straight crossing pass of paper 000 §5 (3-D at constant ``altitude`` if given)."""
     initial = (start_x, speed, offset, 0.0) + (() if altitude is None else (altitude, 0.0))
     return ConstantVelocity(dt=dt, steps=steps, initial=tuple(float(v) for v in initial), accel_sigma=accel_sigma)
+
+
+def _crossing(context, n, fields):
+    return Crossing(context.dt, context.steps, n["speed"], n["offset"], n["start_x"], n["accel_sigma"],
+                    fields.number("altitude", None))
+
+
+def _constant_velocity(context, n, fields):
+    init = numbers(fields.get("initial"), (2, 4, 6))
+    if init is None:
+        raise fields.error("initial", fields.get("initial"), "must be 2, 4 or 6 finite numbers [x, vx(, y, vy(, z, vz))]")
+    return ConstantVelocity(dt=context.dt, steps=context.steps, initial=init, accel_sigma=n["accel_sigma"])
+
+
+CROSSING = ScenarioKind(
+    "crossing", "straight crossing pass, CV with white acceleration (paper 000); altitude (m) makes it 3-D",
+    {"speed": Param("speed along x", free, "m/s", 400.0), "offset": Param("crossing distance (y)", free, "m", 20000.0),
+     "start_x": Param("x one period before the first measurement", free, "m", -20000.0),
+     "accel_sigma": Param("white acceleration noise", nonnegative, "m/s²", 1.0)}, _crossing)
+CONSTANT_VELOCITY = ScenarioKind(
+    "constant_velocity", "CV with white acceleration from initial = [x, vx(, y, vy(, z, vz))], 1-3 D (paper 002 §3)",
+    {"accel_sigma": Param("white acceleration noise", nonnegative, "m/s²", 0.0)}, _constant_velocity)

@@ -20,11 +20,12 @@ import jax.numpy as jnp
 
 from tracklab.errors import first_line
 from tracklab.pytree import static
+from tracklab.scenarios.kind import Scenario
 
 
 @jax.tree_util.register_dataclass
 @dataclass(frozen=True)
-class Generated:
+class Generated(Scenario):
     truth: Callable = static()  # key -> (steps + 1, 2·dim), or (key, params) -> … when params is given
     dt: float = static(1.0)
     steps: int = static(1)

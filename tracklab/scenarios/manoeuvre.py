@@ -34,6 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab.pytree import static
+from tracklab.scenarios.kind import Scenario, ScenarioKind, numbers
 
 G = 9.80665  # standard gravity, m/s²
 SUBSTEPS = 8  # RK4 steps per sample period
@@ -94,7 +95,7 @@ def propagate(state, t0, dt, segments):
 
 @jax.tree_util.register_dataclass
 @dataclass(frozen=True)
-class Manoeuvre:
+class Manoeuvre(Scenario):
     dt: float = static()
     steps: int = static()
     initial: tuple = ()  # CV layout, 2·dim values
@@ -155,3 +156,35 @@ class Manoeuvre:
         F = jax.vmap(jax.jacfwd(self.transition))(x[:-1], ks)
         n = 2 * self.dim
         return np.asarray(F), np.zeros((n, n))
+
+
+def _manoeuvre(context, n, fields):
+    """initial [x, vx, y, vy(, z, vz)] and segments, a list of at least one table {duration (s),
+    turn_g (g, + left), accel (m/s², along the velocity)}; what the flight as a whole must keep (a
+    moving target) is the scenario's own check (``problem``)."""
+    init = numbers(fields.get("initial"), (4, 6))
+    if init is None:
+        raise fields.error("initial", fields.get("initial"), "must be 4 or 6 finite numbers [x, vx, y, vy(, z, vz)]")
+    if context.dim is not None and len(init) // 2 != context.dim:
+        raise fields.error("initial", list(init), f"is {len(init) // 2}-D: the sensors observe {context.dim}-D positions")
+    table = fields.get("segments")
+    if not isinstance(table, list) or not table:
+        raise fields.error("segments", table, "must be a list of at least one table {duration, turn_g, accel} (a "
+                           "straight flight: kind = \"constant_velocity\")")
+    segments = []
+    for j, seg in enumerate(table, start=1):
+        ss = fields.table(f"segments[{j}]", seg)
+        segments.append((ss.number("duration", required=True, positive=True),
+                         ss.number("turn_g", 0.0, lo=-100.0, hi=100.0), ss.number("accel", 0.0, lo=-1000.0, hi=1000.0)))
+        ss.check_unknown()
+    scenario = Manoeuvre(dt=context.dt, steps=context.steps, initial=init, segments=tuple(segments))
+    why = scenario.problem()
+    if why:
+        at_start = why.startswith("initial")
+        raise fields.error("initial" if at_start else "segments", list(init) if at_start else table, why)
+    return scenario
+
+
+MANOEUVRE = ScenarioKind(
+    "manoeuvre", "straight legs, N-g coordinated turns, longitudinal accelerations: initial, segments (2-D or 3-D)",
+    {}, _manoeuvre)

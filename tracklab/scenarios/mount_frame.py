@@ -19,6 +19,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from tracklab.scenarios.kind import Scenario
+
 
 def mount_angles(p):
     """[az, el] in radians of a position (east, north, up)."""
@@ -28,7 +30,7 @@ def mount_angles(p):
 
 @jax.tree_util.register_dataclass
 @dataclass(frozen=True)
-class MountFrame:
+class MountFrame(Scenario):
     scenario: Any  # a 3-D scenario: simulate(key) -> (steps + 1, 6) in CV layout
 
     dim = 2
@@ -39,6 +41,10 @@ class MountFrame:
     @property
     def per_run(self):
         return self.scenario.per_run
+
+    @property
+    def accel_sigma(self):
+        return self.scenario.accel_sigma  # the 3-D truth's (m/s²)
 
     @property
     def dt(self):

@@ -17,12 +17,14 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 
+from tracklab.parameters import Param, bounded, free, positive
 from tracklab.pytree import static
+from tracklab.scenarios.kind import Scenario, ScenarioKind
 
 
 @jax.tree_util.register_dataclass
 @dataclass(frozen=True)
-class Overflight:
+class Overflight(Scenario):
     dt: float = static()
     steps: int = static()
     altitude: float = 8000.0
@@ -51,3 +53,12 @@ class Overflight:
 
     def simulate(self, key):
         return self.truth()
+
+
+OVERFLIGHT = ScenarioKind(
+    "overflight", "straight level pass over the site (paper 004)",
+    {"altitude": Param("flight altitude", positive, "m", 8000.0), "speed": Param("ground speed", positive, "m/s", 250.0),
+     "max_elevation": Param("elevation at the closest point", bounded(0.0, 90.0), "deg", 74.947),
+     "t_closest": Param("time of the closest point after the prior epoch", free, "s", 75.0),
+     "heading": Param("track, clockwise from north", free, "deg", 90.0)},
+    lambda context, n, fields: Overflight(dt=context.dt, steps=context.steps, **n))

@@ -11,12 +11,14 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 
+from tracklab.parameters import Param, free, positive
 from tracklab.pytree import static
+from tracklab.scenarios.kind import Scenario, ScenarioKind
 
 
 @jax.tree_util.register_dataclass
 @dataclass(frozen=True)
-class Sine:
+class Sine(Scenario):
     dt: float = static()
     steps: int = static()
     amplitude: float = 83.33
@@ -39,3 +41,10 @@ class Sine:
 
     def simulate(self, key):
         return self.truth()
+
+
+SINE = ScenarioKind(
+    "sine", "one angle, A sin(omega t + phase) (paper 003's equivalent target)",
+    {"amplitude": Param("A", positive, "deg", 83.33), "omega": Param("ω", positive, "rad/s", 0.6),
+     "phase": Param("φ", free, "rad", 0.0)},
+    lambda context, n, fields: Sine(dt=context.dt, steps=context.steps, **n))

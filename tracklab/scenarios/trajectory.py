@@ -26,7 +26,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from tracklab.parameters import Param, nonnegative
 from tracklab.pytree import static
+from tracklab.scenarios.kind import Scenario, ScenarioKind
 
 COLUMNS = ("t", "x", "y", "z")
 
@@ -96,7 +98,7 @@ def hermite(t_knots, p_knots, t):
 
 @jax.tree_util.register_dataclass
 @dataclass(frozen=True)
-class Trajectory:
+class Trajectory(Scenario):
     path: str = static()
     dt: float = static()
     steps: int = static()
@@ -131,3 +133,29 @@ class Trajectory:
 
     def simulate(self, key):
         return self.truth()
+
+
+def _trajectory(context, n, fields):
+    """path (a t,x,y,z file, relative to the experiment file), dims (default the sensors' or 3), start."""
+    p = fields.string("path", required=True)
+    try:
+        tpath = (context.folder / p).resolve()
+        read_csv(tpath)
+    except (RuntimeError, OSError) as e:  # a symbolic-link loop, a name too long, …
+        raise fields.error("path", p, f"trajectory file cannot be opened ({e.__class__.__name__})") from None
+    except TrajectoryError as e:
+        raise fields.error("path", p, f"trajectory file {e}") from None
+    dims = fields.integer("dims", context.dim or 3, lo=2, hi=3)
+    if context.dim is not None and dims != context.dim:
+        raise fields.error("dims", dims, f"must be {context.dim} for the sensors given")
+    scenario = Trajectory(path=str(tpath), dt=context.dt, steps=context.steps, dim=dims, start=n["start"])
+    avail = scenario.max_steps()
+    if context.steps > avail:
+        raise fields.error("experiment.steps", context.steps,
+                           f"the trajectory from start = {n['start']} s holds at most {avail} steps of {context.dt} s")
+    return scenario
+
+
+TRAJECTORY = ScenarioKind(
+    "trajectory", "truth from a CSV file with columns t,x,y,z (s, m): path, dims",
+    {"start": Param("seconds after the file's first time", nonnegative, "s", 0.0)}, _trajectory)

@@ -21,11 +21,9 @@ def check_tune(exp, names, labels, out_toml, runs_per_step=None, max_memory=None
 
     chosen = selection(exp, names, labels)
     if not chosen:
-        from tracklab.worlds.tracking.lanes import FilterSpec
-
-        own = [fc.label for fc in getattr(exp, "filters", []) if isinstance(fc, FilterSpec) and not fc.declared]
-        hint = (f" (filters of one's own whose factory declares no numbers, {', '.join(own)}, are tuned from Python: "
-                "tracklab.tune, or declare them: tracklab.declare)" if own else "")
+        bare = [label for label, declared in exp.declared().items() if not declared]
+        hint = (f" ({', '.join(bare)} declare no numbers: a filter of one's own is tuned from Python, tracklab.tune, "
+                "or its factory declares them, tracklab.declare)" if bare else "")
         raise ConfigError(exp.path, field, ",".join(names), f"no selected filter has any of these parameters{hint}")
     why = unwritable(exp, chosen)
     if why:
@@ -79,7 +77,7 @@ def run_tune(exp, names, *, steps, lr, loss, runs_per_step, labels, out_toml: Pa
     for label, p in res.params.items():
         say(f"{label}: " + ", ".join(f"{k} {shown(res.initial[label][k])} -> {shown(v)}" for k, v in p.items()))
     for lane, before in res.eval_initial.items():  # a filter's (a closed loop's case's) own loss
-        say(f"{lane}: held-out {loss} ({res.eval_runs} runs) {number(before)} -> "
+        say(f"{lane}: held-out {res.loss} ({res.eval_runs} runs) {number(before)} -> "
             f"{number(res.eval_tuned.get(lane, math.nan))}")
     say(f"tuned in {res.wall_s:.1f} s ({len(res.history)} steps of {res.runs_per_step} runs)")
     if not writes():  # process 0 of a run of several processes writes

@@ -55,19 +55,17 @@ def _call_shape(exp, points, runs, chunk=None, block_points=None):
     """(runs, grid points) of one call: memory per call grows with grid points × runs × steps,
     kept near 10⁶ run-steps."""
     budget = 1_000_000
-    steps = getattr(exp, "ticks", exp.steps)
+    steps = exp.samples_per_run
     chunk = int(min(chunk or exp.chunk or 1000, runs, max(1, budget // steps)))  # a sweep's own program
     return chunk, int(block_points or max(1, min(points, budget // (chunk * steps))))
 
 def memory_bytes(exp, axes: list[Axis], runs=None) -> float:
-    """A lower bound: every grid point's per-step statistics of every filter (kept until the
-    sweep is written), and one call's per-step values."""
+    """A lower bound: every grid point's per-step statistics (kept until the sweep is written), and
+    one call's runs."""
     P = grid_points(axes)
     chunk, block = _call_shape(exp, P, runs or exp.runs)
-    lanes = len(exp.structure().labels)
-    width = 2 * exp.dim + exp.sensor.m if hasattr(exp, "sensor") else 12
-    per_point = exp.steps * (lanes * 64 + getattr(exp, "dim", 1) ** 2) * 8.0
-    return P * per_point + block * chunk * getattr(exp, "ticks", exp.steps) * width * 4.0
+    return P * exp.statistics_bytes + block * chunk * exp.run_bytes
+
 
 def check_sweep(exp, axes: list[Axis], runs=None, limit=None):
     """Refuse (ConfigError, one line) what a sweep cannot mean: an axis named twice, a scale factor
@@ -82,28 +80,21 @@ def check_sweep(exp, axes: list[Axis], runs=None, limit=None):
     for a in axes:
         if a.path is None and not _scales(exp, a.name):
             raise ConfigError(exp.path, "--grid", a.name, f"no filter of this experiment declares a scalable "
-                              f"parameter {a.name!r} (scalable here: {', '.join(_scalable(exp)) or 'none'})")
+                              f"parameter {a.name!r} (scalable here: {', '.join(exp.scalable()) or 'none'})")
         if a.path is not None:
             _path_of(exp, a)
         if a.path == ("experiment", None, "runs") and runs is not None:
             raise ConfigError(exp.path, "--runs", runs, f"the grid sets each point's runs ({a.name}): give one of them")
-    if getattr(exp, "trained_first", list)():
+    if exp.trained_first():
         raise ConfigError(exp.path, "--grid", " ".join(names), "an estimator trained before its run (train_steps > 0) "
                           "cannot be swept: set train_steps = 0, or sweep the trained weights through the Python API")
     check(exp.path, memory_bytes(exp, axes, runs), limit, f"a sweep of {grid_points(axes):.3g} grid points",
           "fewer grid points (N in NAME=LO:HI:N), or fewer experiment.steps")
 
-def _scalable(exp) -> list[str]:
-    """The parameter names a scale-factor axis may name in this experiment."""
-    if hasattr(exp, "filters"):
-        return list(dict.fromkeys(n for fc in exp.filters for n, p in exp.declared(fc).items() if p.sweep))
-    if hasattr(exp, "trackers"):
-        return ["q", "r"] if any(t.kind != "classical" for t in exp.trackers) else []
-    return ["q", "r"] if getattr(exp, "estimators", ()) else []
-
 def _scales(exp, name) -> bool:
     """Whether a scale-factor axis ``name`` scales something in this experiment."""
-    return name in _scalable(exp)
+    return name in exp.scalable()
+
 
 def point(exp, axes: list[Axis], values):
     """One grid point: (the file with the PATH values set, validated as a file is; its params, scale
@@ -187,7 +178,7 @@ def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=
     return {"axes": {a.name: a.values.tolist() for a in axes}, "titles": {a.name: a.title for a in axes},
             "log": {a.name: a.log for a in axes}, "points": doc_points, "wall_s": wall, "compile_s": compile_s,
             "runs": each[0] if len(each) == 1 else each, "programs": len(programs), "structural": structural,
-            "units": list(exp.units), "nees_dof": getattr(exp, "nees_dof", None),
+            "units": list(exp.units), "nees_dof": exp.nees_dof,
             "metrics": [[k, t.format(pos=exp.units[0])] for k, t in exp.sweep_metrics]}
 
 def _group_of(groups: dict, P: int) -> list:

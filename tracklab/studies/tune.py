@@ -5,35 +5,26 @@ runs, so its gradient with respect to the filters' parameters flows through
 simulation, filtering and statistics. Each optimisation step draws a fresh
 batch of runs; the result is evaluated on held-out runs.
 
-Parameters are optimised in an unconstrained space, the one their kind's declaration
-gives (``tracklab.filters.kind``: each parameter's constraint):
+Every world tunes by one path (``objective``). The numbers a study names are the units'
+declared ones (``Experiment.declared``: a filter kind's, a factory's ``tracklab.declare``,
+an airborne tracker kind's, a servo estimator kind's), each optimised in the unconstrained
+coordinates its constraint gives (``tracklab.parameters``):
 
-* positive ones (``q``, ``r``, ``lam``, ``b``, ``q_e``, ``r_e``, ``r_guide``, ``pw0``:
-  variances, the tracking index, the STF's weakening factor): logarithms;
-* ones in (0, 1] (``rho``, ``forget``: the STF's and the DEKF's forgetting factors): logit;
+* positive ones (variances, the tracking index, the STF's weakening factor, the trackers'
+  ``q_scale``, ``r_scale``, ``lam``, the estimators' ``q``): logarithms;
+* ones in (0, 1] (``rho``, ``forget``: forgetting factors): logit;
 * free ones (``w0``, the DEKF's initial network weights): as they are;
 * ``alpha``, ``beta`` (, ``gamma``): tuned together inside the α-β(-γ) stability
   region (Jury): α = 2σ(u), β = (4 − 2α)σ(v), γ = 4αβ/(2 − α)·σ(w), σ the logistic.
 
-Which parameters may be tuned (``TUNABLE``) and how a tuned value is written back
-into the experiment file are declared there too.
-
-Losses (time-averaged over the report window). Each tuned filter has its own: the
-optimiser follows the gradient of their sum, in which a filter's parameters reach only
-its own term, so no filter's tuning is steered by another's error, and each filter's
-loss is recorded and evaluated on its own:
-
-* ``mse_pos`` — position mean-square error;
-* ``pred_mse`` — one-step prediction mean-square error of the position;
-* ``nll`` — innovation negative log-likelihood ½(νᵀS⁻¹ν + log det S) per
-  update (needs no truth).
-
-The closed loops tune through their own hooks (``tune_names``, ``tune_losses``,
-``tune_selection``, ``tune_start``, ``with_tuned``, ``write_tuned`` of an airborne or
-servo experiment): the airborne trackers' ``q_scale``, ``r_scale``, ``lam`` against the
-true pointing error (``pointing``) or the LOS-rate error (``los_rate``); the servo
-estimators' ``q`` against the tracking error (``track_mse``) or the rate error
-(``rate_mse``); all positive, tuned in their logarithms, the gradient through the whole
+The values go into the params (``Experiment.with_values``, traced), the world runs a batch of
+runs, and each tuned unit's loss is its lane's (``Experiment.tune_losses``; a servo estimator's,
+the cases it feeds): the optimiser follows the gradient of their sum, in which a unit's numbers
+reach only its own term, so no unit's tuning is steered by another's error. Open loop,
+time-averaged over the report window: ``mse_pos`` (position MSE), ``pred_mse`` (one-step
+prediction MSE), ``nll`` (innovation negative log-likelihood ½(νᵀS⁻¹ν + log det S) per update,
+needing no truth); airborne: ``pointing`` (true pointing error), ``los_rate``; servo:
+``track_mse`` (tracking error after settle), ``rate_mse`` — the gradient through the whole
 closed loop (the estimate steers the antenna or the mount).
 
 The gradient (``gradient``) is taken in forward mode (``jax.jacfwd``: one tangent per tuned
@@ -56,84 +47,119 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from tracklab.config.writeback import write_back
-from tracklab.worlds.tracking.experiment import declared_of
-from tracklab.filters.kind import FilterKind
-from tracklab.filters.registry import KINDS
 from tracklab.montecarlo import runner
-from tracklab.parameters import constraint_of, positive
-from tracklab.pytree import named_leaves, with_leaves
-from tracklab.worlds.tracking import errors, scan
-from tracklab.worlds.tracking.errors import LOSSES
-from tracklab.worlds.tracking.lanes import FilterSpec
+from tracklab.parameters import constraint_of, write_value
+from tracklab.worlds.protocol import Experiment
 
 
-def _constrained_together(kind: FilterKind, params: dict, names):
-    """(constraint, the parameters it transforms together) for the named parameters of a filter."""
-    groups = []
-    for n in names:
-        c = kind.params[n].constraint
-        group = (c, tuple(m for m in c.members if m in params) if c.members else (n,))
-        if group not in groups:
-            groups.append(group)
-    return groups
+def _groups(constraints: dict, have) -> list:
+    """(constraint, the numbers it transforms together) for each named number: the α-β(-γ) gains
+    go together (those of them in ``have``), every other number on its own."""
+    out = []
+    for n, c in constraints.items():
+        g = (c, tuple(m for m in c.members if m in have) if c.members else (n,))
+        if g not in out:
+            out.append(g)
+    return out
 
 
-def encode(kind: FilterKind, params: dict, names) -> dict:
-    """Unconstrained coordinates of the named parameters of a filter of ``kind``."""
+def encode(constraints: dict, values: dict) -> dict:
+    """Unconstrained coordinates of the numbers named in ``constraints`` (name -> Constraint), from a
+    unit's ``values`` (its jointly constrained numbers come along)."""
     theta = {}
-    for c, group in _constrained_together(kind, params, names):
-        theta.update(c.encode({n: params[n] for n in group}))
+    for c, group in _groups(constraints, values):
+        theta.update(c.encode({n: values[n] for n in group}))
     return theta
 
 
-def decode(kind: FilterKind, theta: dict, params: dict) -> dict:
-    """Parameters with the tuned ones replaced by their constrained values."""
-    out = dict(params)
-    for c, group in _constrained_together(kind, params, theta):
+def decode(constraints: dict, theta: dict) -> dict:
+    """The constrained values at unconstrained coordinates ``theta``."""
+    out = {}
+    for c, group in _groups(constraints, theta):
         out.update(c.decode({n: theta[n] for n in group}))
     return out
 
 
-def acceptable(kind: FilterKind, params: dict, names) -> str | None:
-    """Why the named parameter values could not be written into an experiment file that
-    ``tracklab run`` accepts (None if they can)."""
-    for n in names:
-        p = kind.params[n]
-        if n not in params or p.write is None:  # a file holds none
-            continue
-        v = np.asarray(params[n], float)
-        if not np.all(np.isfinite(v)):
-            return f"{n} is not finite"
-        if not np.all(p.constraint.inside(v)):
-            return f"{n} leaves {p.constraint.bounds}"
+def outside(constraints: dict, values: dict) -> str | None:
+    """Why ``values`` leave their constraints (a number not finite, or outside), None if they do not."""
+    for c, group in _groups(constraints, values):
+        v = {n: np.asarray(values[n], float) for n in group}
+        if not all(np.all(np.isfinite(x)) for x in v.values()):
+            return f"{', '.join(group)} not finite"
+        if not c.contains(v):
+            return f"{', '.join(group)} leaves {c.bounds}"
     return None
 
 
-def unwritable(exp, chosen: dict) -> str | None:
-    """Why the tuned values of ``chosen`` ({label: names}) could not be written back into the
-    experiment file (None if they can): checked before tuning starts."""
+def selection(exp: Experiment, names, labels=None) -> dict:
+    """Which numbers of which units (filters, trackers, estimators) are tuned: {label: {name: constraint}}.
+
+    ``names``: names every selected unit that declares them tunable has tuned (``labels``: the units
+    selected, default all); or {label: names} naming each unit's own — a list of its declared names,
+    or for a filter of one's own {leaf name: constraint} over its params pytree
+    (``tracklab.pytree.named_leaves``; constraints "positive", "unit", "free" or (lo, hi)).
+    ``ValueError`` in one line for a label, name or constraint that does not fit."""
+    declared = exp.declared()
+    if not isinstance(names, dict):
+        return {l: picked for l, d in declared.items() if not labels or l in labels
+                if (picked := {n: d[n].constraint for n in names if n in d and d[n].tune})}
+    values = exp.values(exp.params())
+    chosen = {}
+    for label, wanted in names.items():
+        if label not in declared and label not in values:
+            raise ValueError(f"tune: no filter labelled {label!r} (filters: {', '.join(values)})")
+        d = declared.get(label, {})
+        if not isinstance(wanted, dict):  # declared numbers, by name: their declared constraints
+            undeclared = [n for n in wanted if n not in d or not d[n].tune]
+            if undeclared:
+                ok = [n for n, q in d.items() if q.tune]
+                raise ValueError(f"tune: filter {label!r} declares no tunable {undeclared[0]!r} (tunable: "
+                                 f"{', '.join(ok) or 'none'}); give a filter of one's own each leaf of its params "
+                                 f"with its constraint, e.g. {{{label!r}: {{'q': 'positive'}}}}")
+            picked = {n: d[n].constraint for n in wanted}
+        else:
+            leaves, picked = values[label], {}
+            for n, spec in wanted.items():
+                if n not in leaves:
+                    raise ValueError(f"tune: filter {label!r} has no parameter {n!r} (its parameters: "
+                                     f"{', '.join(k or '(the params itself)' for k in leaves)})")
+                if not jnp.issubdtype(jnp.result_type(leaves[n]), jnp.floating):
+                    raise ValueError(f"tune: filter {label!r}: {n} is {jnp.result_type(leaves[n]).name}, not a "
+                                     f"floating-point number: it cannot be differentiated")
+                try:
+                    c = constraint_of(spec)
+                except ValueError as e:
+                    raise ValueError(f"tune: filter {label!r}: {n}: {e}") from None
+                if not np.all(np.asarray(c.inside(np.asarray(leaves[n], float)))):
+                    raise ValueError(f"tune: filter {label!r}: {n} = {np.asarray(leaves[n]).tolist()} is outside "
+                                     f"its constraint {c.bounds}")
+                picked[n] = c
+        if picked:
+            chosen[label] = picked
+    return chosen
+
+
+def unwritable(exp: Experiment, chosen: dict) -> str | None:
+    """Why the tuned values of ``chosen`` could not be written back into the experiment file (None
+    if they can): each written where its declaration says, on a copy of the file's tables, before
+    tuning starts."""
     import copy
 
-    if hasattr(exp, "write_tuned"):
-        return None  # the closed loops' tuned numbers are [[tracker]] / [[estimator]] fields
-
-    for fc, table in zip(exp.filters, exp.raw["filter"]):
-        if isinstance(fc, FilterSpec):  # a factory's filter: a tuned value goes back as the keyword of that name
-            missing = [n for n in chosen.get(fc.label, ()) if n not in table and n not in fc.declared]
-            if missing:
-                return (f"filter {fc.label!r}: {missing[0]} is no key of its [[filter]] table, so a tuned value "
-                        f"has nowhere to go in the file (tune it from Python: tracklab.tune)")
-            continue
-        kind = KINDS[fc.kind]
-        for n in chosen.get(fc.label, ()):
-            p = kind.params[n]
-            if p.write is None:
-                return f"filter {fc.label!r}: {n} ({p.doc}) is tuned through the Python API; a file holds none"
+    section, labels = exp.tables()
+    declared, values = exp.declared(), exp.values(exp.params())
+    for label, table in zip(labels, exp.raw.get(section, [])):
+        for n in chosen.get(label, ()):
+            p = declared.get(label, {}).get(n)
+            if p is None and n not in table:  # a leaf of one's own filter goes back under its name: a keyword
+                return (f"filter {label!r}: {n} is no key of its [[filter]] table, so a tuned value has nowhere to "
+                        f"go in the file (tune it from Python: tracklab.tune)")
+            if p is not None and p.write is None:
+                return f"{label!r}: {n} ({p.doc}) is tuned through the Python API; a file holds none"
             try:
-                p.write(copy.deepcopy(table), n, fc.params[n], write_back(exp, fc))
+                (p.write if p is not None else write_value)(copy.deepcopy(table), n, values[label][n],
+                                                            exp.write_where(label))
             except ValueError as e:
-                return f"filter {fc.label!r}: {e}"
+                return f"filter {label!r}: {e}"
     return None
 
 
@@ -168,118 +194,27 @@ def numbers(theta) -> int:
     return sum(int(np.size(x)) for x in jax.tree_util.tree_leaves(theta))
 
 
-def tuned_numbers(exp, chosen: dict) -> int:
+def tuned_numbers(exp: Experiment, chosen: dict) -> int:
     """``numbers`` of a selection (``selection``), from the file's values, before anything is traced."""
-    if hasattr(exp, "tune_start"):
-        return numbers(exp.tune_start(chosen))
-    base = dict(zip((fc.label for fc in exp.filters), exp.params().filters))
-    own = {fc.label for fc in exp.filters if isinstance(fc, FilterSpec)}
-    return numbers({l: [(named_leaves(base[l]) if l in own else base[l])[n] for n in ns] for l, ns in chosen.items()})
+    values = exp.values(exp.params())
+    return numbers({l: encode(c, values[l]) for l, c in chosen.items()})
 
 
-def memory_bytes(exp, runs_per_step, eval_runs=None, tuned=FORWARD_UP_TO + 1) -> float:
-    """A lower bound on one tuning step of ``tuned`` numbers (tuning runs in float64). Reverse
-    mode: the filter states it keeps for every run and step of a batch; forward mode, which keeps
-    no step's states: the batch's random draws for every step and the current step's filter
-    states with one tangent per tuned number (a closed loop: its per-period outputs). Plus the
-    held-out evaluation's draws."""
-    if hasattr(exp, "tune_memory_bytes"):
-        if forward_mode(tuned):
-            return runs_per_step * exp.run_bytes
-        return exp.tune_memory_bytes(runs_per_step)
-    n = [fc.report_layout(exp.dim).n if isinstance(fc, FilterSpec) else (3 if fc.model == "ca" else 2) * exp.dim
-         for fc in exp.filters]  # each filter's state dimension
-    state = sum(k * (1 + k) for k in n)  # its mean and covariance
-    n_eval = eval_runs or min(exp.runs, 2000)
-    width = 2 * exp.dim + exp.sensor.m
-    held_out = min(n_eval, 1000) * exp.steps * width * 4.0
-    if forward_mode(tuned):
-        return runs_per_step * (exp.steps * width + state * (1 + tuned)) * 8.0 + held_out
-    return runs_per_step * exp.steps * state * 8.0 + held_out
-
-
-def selection(exp, names, labels=None) -> dict:
-    """Which parameters of which filters (trackers, estimators) are tuned: {label: names}.
-
-    ``names``: parameter names (every selected built-in filter that declares one, tunable,
-    has it tuned), or {label: names} naming each filter's own: for a built-in kind a list of
-    its declared parameters, for a filter of one's own (``FilterSpec``) {leaf name:
-    constraint} over its params pytree (``tracklab.pytree.named_leaves``; constraints
-    "positive", "unit", "free" or (lo, hi)). ``ValueError`` in one line for a label, name or
-    constraint that does not fit."""
-    if hasattr(exp, "tune_selection"):
-        return exp.tune_selection([n for n in names if n in exp.tune_names], labels)
-    if isinstance(names, dict):
-        return _named_selection(exp, names)
-    chosen = {}
-    for fc in exp.filters:
-        if labels and fc.label not in labels:
-            continue
-        if isinstance(fc, FilterSpec):  # a factory's declared numbers, each in its constraint's coordinates
-            have = {n: fc.declared[n].constraint for n in names if n in fc.declared and fc.declared[n].tune}
-        else:
-            have = tuple(n for n in names if n in declared_of(fc) and declared_of(fc)[n].tune)
-        if have:
-            chosen[fc.label] = have
-    return chosen
-
-
-def _named_selection(exp, names: dict) -> dict:
-    by_label = {fc.label: fc for fc in exp.filters}
-    chosen = {}
-    for label, wanted in names.items():
-        if label not in by_label:
-            raise ValueError(f"tune: no filter labelled {label!r} (filters: {', '.join(by_label)})")
-        fc = by_label[label]
-        if isinstance(fc, FilterSpec):
-            if not isinstance(wanted, dict):  # declared numbers, by name: their declared constraints
-                undeclared = [n for n in wanted if n not in fc.declared or not fc.declared[n].tune]
-                if undeclared:
-                    raise ValueError(f"tune: filter {label!r} declares no tunable {undeclared[0]!r} (declared: "
-                                     f"{', '.join(n for n, p in fc.declared.items() if p.tune) or 'none'}); give "
-                                     f"each leaf of its params its constraint, e.g. {{{label!r}: {{'q': 'positive'}}}}")
-                wanted = {n: fc.declared[n].constraint for n in wanted}
-            leaves = named_leaves(fc.filter.params)
-            picked = {}
-            for n, spec in wanted.items():
-                if n not in leaves:
-                    raise ValueError(f"tune: filter {label!r} has no parameter {n!r} (its parameters: "
-                                     f"{', '.join(k or '(the params itself)' for k in leaves)})")
-                if not jnp.issubdtype(jnp.result_type(leaves[n]), jnp.floating):
-                    raise ValueError(f"tune: filter {label!r}: {n} is {jnp.result_type(leaves[n]).name}, not a "
-                                     f"floating-point number: it cannot be differentiated")
-                try:
-                    c = constraint_of(spec)
-                except ValueError as e:
-                    raise ValueError(f"tune: filter {label!r}: {n}: {e}") from None
-                if not np.all(np.asarray(c.inside(np.asarray(leaves[n], float)))):
-                    raise ValueError(f"tune: filter {label!r}: {n} = {np.asarray(leaves[n]).tolist()} is outside "
-                                     f"its constraint {c.bounds}")
-                picked[n] = c
-            if picked:
-                chosen[label] = picked
-            continue
-        kind = KINDS[fc.kind]
-        wanted = list(wanted)
-        for n in wanted:
-            if not (n in declared_of(fc) and declared_of(fc)[n].tune):
-                ok = [k for k, p in declared_of(fc).items() if p.tune]
-                raise ValueError(f"tune: filter {label!r} ({kind.name}) has no tunable parameter {n!r} "
-                                 f"(tunable: {', '.join(ok) or 'none'})")
-        if wanted:
-            chosen[label] = tuple(wanted)
-    return chosen
+def memory_bytes(exp: Experiment, runs_per_step, tuned=FORWARD_UP_TO + 1) -> float:
+    """A lower bound on one tuning step of ``tuned`` numbers (tuning runs in float64; the world's
+    ``tune_memory_bytes``, in forward or reverse mode as ``tuned`` decides)."""
+    return exp.tune_memory_bytes(runs_per_step, tuned, forward_mode(tuned))
 
 
 @dataclass
 class Objective:
-    """losses(theta, key, idx, live) -> {label: loss} for the selected parameters of an experiment
-    (any world): each tuned filter's (tracker's, case's) own loss."""
+    """losses(theta, key, idx, live) -> {lane: loss} for the selected numbers of an experiment (any
+    world): each tuned unit's own loss (a servo estimator's: the cases it feeds)."""
 
     losses: Callable
-    theta0: dict  # label -> unconstrained coordinates of its tuned parameters
-    values: Callable  # theta -> {label: {name: value}}, the tuned parameters' constrained values
-    chosen: dict  # label -> names
+    theta0: dict  # label -> unconstrained coordinates of its tuned numbers
+    values: Callable  # theta -> {label: {name: value}}, the tuned numbers' constrained values
+    chosen: dict  # label -> {name: constraint}
     why_not: Callable  # {label: {name: value}} -> why a file could not hold them (None if it can)
     compiler_options: dict | None = None  # XLA options of the world's programs (``runner.World``)
 
@@ -288,90 +223,36 @@ class Objective:
         return self.values(self.theta0)
 
 
-def objective(exp, names, loss="mse_pos", labels=None) -> Objective:
-    losses = getattr(exp, "tune_losses", LOSSES)
+def objective(exp: Experiment, names, loss=None, labels=None) -> Objective:
+    """The one tuning path, for every world: the selected numbers' constraints give the coordinates
+    Adam moves in (``encode``/``decode``); their values go into the params (``with_values``), the
+    world runs a batch, and each lane's loss is the experiment's ``tune_losses[loss]`` of its sums."""
+    losses = exp.tune_losses
+    loss = loss or next(iter(losses))
     if loss not in losses:
         raise ValueError(f"tune: loss {loss!r}: must be one of {', '.join(losses)}")
     chosen = selection(exp, names, labels)
     if not chosen:
         raise ValueError(f"no filter has any of the parameters {', '.join(names)}")
-    if hasattr(exp, "tune_selection"):
-        return _closed_loop_objective(exp, chosen, loss)
-    structure = exp.structure()
-    world = scan.world(structure)
-    fn = runner.sharded(world)
-    params = exp.params()
-    base = params.filters
-    labels_all = structure.labels
-    entries = dict(zip(labels_all, exp.filters))
-    at = {l: labels_all.index(l) for l in chosen}
-    loss_fn = LOSSES[loss]
-    window = exp.window
-
-    def own(label):  # a filter of one's own: {name: constraint}
-        return isinstance(entries[label], FilterSpec)
-
-    def encode_one(l):
-        if own(l):
-            leaves = named_leaves(base[at[l]])
-            return {n: c.to_free(jnp.asarray(leaves[n], float)) for n, c in chosen[l].items()}
-        return encode(KINDS[entries[l].kind], base[at[l]], chosen[l])
-
-    def decode_one(l, theta_l, p):
-        if own(l):
-            return with_leaves(p, {n: c.from_free(theta_l[n]) for n, c in chosen[l].items()})
-        return decode(KINDS[entries[l].kind], theta_l, p)
-
-    theta0 = {l: encode_one(l) for l in chosen}
-
-    def filters(theta):
-        return [decode_one(l, theta[l], f) if l in theta else f for l, f in zip(labels_all, base)]
-
-    def per_filter(theta, key, idx, live):
-        p = params._replace(filters=filters(theta))
-        sums = errors.unpack(fn(p, key, idx, live, jnp.zeros((len(labels_all), idx.shape[0]), bool)), exp.dim)
-        return {l: loss_fn(sums[l], window) for l in chosen}
-
-    def values(theta):
-        f = filters(theta)
-        return {l: {n: (named_leaves(f[at[l]])[n] if own(l) else f[at[l]][n]) for n in ns} for l, ns in chosen.items()}
-
-    def why_not(vals):
-        for l, v in vals.items():
-            if own(l):
-                why = next((f"{n} leaves {chosen[l][n].bounds}" for n, x in v.items()
-                            if not np.all(np.isfinite(np.asarray(x))) or not chosen[l][n].contains({n: x})), None)
-            else:
-                why = acceptable(KINDS[entries[l].kind], v, chosen[l])
-            if why:
-                return why
-        return None
-
-    return Objective(per_filter, theta0, values, {l: tuple(ns) for l, ns in chosen.items()}, why_not,
-                     runner.world_compiler_options(world))
-
-
-def _closed_loop_objective(exp, chosen, loss) -> Objective:
-    """The airborne or servo world's: every tuned number is positive (tuned in its logarithm)."""
     structure = exp.structure()
     world = exp.world(structure)
     fn = runner.sharded(world)
     params = exp.params()
-    lanes = getattr(exp, "tune_lanes", lambda c: list(c))(chosen)
-    loss_fn = exp.tune_losses[loss]
-    theta0 = {l: positive.encode(vals) for l, vals in exp.tune_start(chosen).items()}
+    start = exp.values(params)
+    lanes = exp.tune_lanes(chosen)
+    loss_fn = losses[loss]
+    theta0 = {l: encode(c, start[l]) for l, c in chosen.items()}
 
     def values(theta):
-        return {l: positive.decode(t) for l, t in theta.items()}
+        return {l: decode(chosen[l], theta[l]) for l in theta}
 
     def per_lane(theta, key, idx, live):
-        p = exp.with_tuned(params, values(theta))
-        sums = fn(p, key, idx, live, jnp.zeros((len(structure.labels), idx.shape[0]), bool))
-        return {l: loss_fn(sums[l]) for l in lanes}
+        sums = fn(exp.with_values(params, values(theta)), key, idx, live,
+                  jnp.zeros((world.lanes, idx.shape[0]), bool))
+        return {lane: loss_fn(sums, lane) for lane in lanes}
 
     def why_not(vals):
-        return next((f"{l}: {n} leaves {positive.bounds}" for l, v in vals.items() for n, x in v.items()
-                     if not positive.contains({n: x})), None)
+        return next((f"{l}: {why}" for l, v in vals.items() if (why := outside(chosen[l], v))), None)
 
     return Objective(per_lane, theta0, values, chosen, why_not, runner.world_compiler_options(world))
 
@@ -395,7 +276,7 @@ def _floats(values: dict) -> dict:
     return {l: {n: np.asarray(v).tolist() for n, v in vals.items()} for l, vals in values.items()}
 
 
-def tune(exp, names, *, steps=200, lr=0.05, loss="mse_pos", runs_per_step=None, eval_runs=None, seed=None,
+def tune(exp, names, *, steps=200, lr=0.05, loss=None, runs_per_step=None, eval_runs=None, seed=None,
          labels=None, every=10, progress=None) -> TuneResult:
     """Adam (optax) on the named parameters (see ``selection``); a fresh batch of runs every step.
 
@@ -429,6 +310,7 @@ def _tune(exp, names, *, steps, lr, loss, runs_per_step, eval_runs, seed, labels
     # found again only for arguments placed as before
     theta = jax.device_get(obj.theta0)
     state = opt.init(theta)
+    loss = loss or next(iter(exp.tune_losses))
     result = TuneResult(params={}, initial=_floats(obj.initial), loss=loss, runs_per_step=B, eval_runs=n_eval)
 
     def evaluate(th):

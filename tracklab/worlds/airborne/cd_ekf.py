@@ -24,9 +24,10 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from tracklab.worlds.airborne.boresight import EPS, OMEGA, ModelParams, antenna_motion, antenna_rate_at, drift, observation_matrix, process_noise
-from tracklab.worlds.airborne.tracker import Timing, Tracker
+from tracklab.worlds.airborne.tracker import FILTERING, Setting, Timing, Tracker, TrackerKind, prior_sd
 from tracklab.filters.blocks import Gaussian, innovation_update
 from tracklab.linalg import mm, solve
 
@@ -162,3 +163,19 @@ def cd_ekf(timing: Timing) -> Tracker:
         return s.x, s.P
 
     return Tracker(start, tick, sample, update, estimate)
+
+
+def filter_numbers(setting: Setting, n) -> tuple[CDParams, np.ndarray]:
+    """A filtering tracker's params from its table's numbers (``FILTERING``): the model's Singer σ's
+    scaled by √q_scale (Q ∝ σ²), R = r_scale·(k σ)² of the error signals, λ; and its prior
+    standard deviations. Traceable in q_scale, r_scale and lam (what tuning varies)."""
+    q = n["q_scale"] ** 0.5
+    mp = ModelParams(q * np.asarray(n["sigma_m"], float), np.asarray(n["tau"], float), q * np.asarray(n["sigma_r"], float),
+                     np.asarray(n["tau_r"], float))
+    k = np.asarray(setting.gains, float)
+    r = n["r_scale"] * (k * np.asarray(setting.noise, float)) ** 2
+    return CDParams(mp, r, k, n["lam"] * np.ones((), float)), prior_sd(setting, n["sigma_m"], n["sigma_r"])
+
+
+CD_EKF = TrackerKind("cd_ekf", "joint continuous-discrete EKF on the 9-state boresight model, antenna command eq. 1",
+                     FILTERING, lambda timing, choices: cd_ekf(timing), filter_numbers)

@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab.worlds.airborne.tracker import Timing, Tracker
+from tracklab.worlds.airborne.tracker import Setting, Timing, Tracker, TrackerKind, prior_sd
 from tracklab.linalg import mm
 from tracklab.filters.alphabeta import kalata_alpha_beta, kalata_alpha_beta_gamma
 from tracklab.worlds.servo.transfer import TransferFunction, discretise
@@ -123,3 +123,15 @@ def classical(timing: Timing) -> Tracker:
         return x, jnp.full((9, 9), jnp.nan, s.rng.dtype)
 
     return Tracker(start, tick, sample, update, estimate)
+
+
+def _numbers(setting: Setting, n):
+    """Its loops' gains from the engagement's Singer model and the noise (its table has no numbers)."""
+    eng, noise = setting.engagement, setting.noise
+    g_r, g_v = loop_gains(eng.singer_sigma, eng.singer_tau, noise[2], noise[3], setting.timing)
+    return (ClassicalParams(np.asarray(setting.gains, float), np.asarray(g_r, float), np.asarray(g_v, float)),
+            prior_sd(setting, eng.singer_sigma, eng.singer_sigma))
+
+
+CLASSICAL = TrackerKind("classical", "eq. 17 angle loop, alpha-beta-gamma range loop, alpha-beta velocity loop", {},
+                        lambda timing, choices: classical(timing), _numbers)

@@ -28,8 +28,8 @@ import numpy as np
 from jax.scipy.linalg import block_diag
 
 from tracklab.worlds.airborne.boresight import EPS, OMEGA, antenna_motion
-from tracklab.worlds.airborne.cd_ekf import command
-from tracklab.worlds.airborne.tracker import Timing, Tracker
+from tracklab.worlds.airborne.cd_ekf import command, filter_numbers
+from tracklab.worlds.airborne.tracker import FILTERING, Timing, Tracker, TrackerKind
 from tracklab.filters.blocks import Gaussian, innovation_update
 from tracklab.linalg import expm, mm, symmetrise
 
@@ -169,3 +169,9 @@ def decoupled(timing: Timing, separate=False) -> Tracker:
         return block_diag(*(P[a:b, a:b] for a, b in bounds))
 
     return Tracker(start, tick, sample, update, estimate)
+
+
+DECOUPLED = TrackerKind("decoupled", "Pearson/Shibata: e, d and range channels filtered separately (range_velocity "
+                        "coupled | separate)", FILTERING,
+                        lambda timing, choices: decoupled(timing, choices["range_velocity"] == "separate"), filter_numbers,
+                        {"range_velocity": ("coupled", "separate")})

@@ -8,38 +8,37 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+
 import jax.numpy as jnp
 import numpy as np
-from tracklab.worlds.airborne.closed_loop import MRAD, SAMPLE_QUANTITIES
+
+from tracklab.intervals import precision_reached
+from tracklab.memory import check
+from tracklab.montecarlo import runner
+from tracklab.montecarlo.statistics import average_chi2_interval, lane_intervals, rms_half_width
 from tracklab.report.airborne import write_airborne_results
+from tracklab.worlds import protocol
+from tracklab.worlds.airborne import world as airborne_world
+from tracklab.worlds.airborne.closed_loop import MRAD, SAMPLE_QUANTITIES, singer_tick
 from tracklab.worlds.airborne.engagement import nominal_range
-
-
-TRACKERS = {
-    "cd_ekf": "joint continuous-discrete EKF on the 9-state boresight model, antenna command eq. 1",
-    "decoupled": "Pearson/Shibata: e, d and range channels filtered separately (range_velocity coupled | separate)",
-    "classical": "eq. 17 angle loop, alpha-beta-gamma range loop, alpha-beta velocity loop",
-    "moose": "joint EKF with Markov-switching mean accelerations (Moose-type adaptive filter)",
-}
-
-TRACKER_KINDS = tuple(TRACKERS)
+from tracklab.worlds.airborne.registry import TRACKERS
+from tracklab.worlds.airborne.tracker import Setting, Timing
 
 MAX_TICKS = 10**7  # radar samples per run (sample_dt against duration)
 
+
 @dataclass(frozen=True)
 class TrackerConfig:
+    """One [[tracker]] table, read as its kind declares (``registry.TRACKERS``)."""
+
     label: str
     kind: str
-    lam: float = 5.0
-    q_scale: float = 1.0
-    r_scale: float = 1.0
-    range_velocity: str = "coupled"
-    model: tuple = ()  # (sigma_m, tau, sigma_r, tau_r)
-    levels: tuple = ()  # moose: mean-acceleration levels (m/s²)
-    p_stay: float = 0.99
+    numbers: dict = field(default_factory=dict)  # name -> value: the numbers its kind declares
+    choices: dict = field(default_factory=dict)  # field -> value: its structural choices
+
 
 @dataclass
-class AirborneExperiment:
+class AirborneExperiment(protocol.Experiment):
     path: Path
     name: str
     runs: int
@@ -78,16 +77,21 @@ class AirborneExperiment:
     def window(self):
         return (1, self.steps)
 
-    def timing(self):
-        from tracklab.worlds.airborne.tracker import Timing
+    units = ("mrad", "mrad/s")
+    sweep_metrics = (("rmse_pos", "true pointing error RMS (mrad)"), ("rmse_vel", "LOS-rate error RMS (mrad/s)"),
+                     ("nees", "average NEES (9 states)"))
+    nees_dof = 9
 
+    def timing(self) -> Timing:
         return Timing(self.sample_dt, self.average, self.antenna_lag)
+
+    def setting(self) -> Setting:
+        """What the trackers' numbers are turned into their params with."""
+        return Setting(self.engagement, self.noise, self.gains, self.acquisition, self.timing())
 
     def default_chunk(self, runs=None) -> int:
         """Runs per chunk when the file does not say: from the memory budget (``runner.budget_chunk``)
         of a run's per-period outputs (12 values a period and tracker), no more than ``runs`` need."""
-        from tracklab.montecarlo import runner
-
         return runner.budget_chunk(self.run_bytes, runs)
 
     @property
@@ -96,31 +100,36 @@ class AirborneExperiment:
         and tracker, 8 bytes each)."""
         return self.steps * 12 * len(self.trackers) * 8.0
 
+    @property
+    def statistics_bytes(self) -> float:
+        return len(self.trackers) * self.steps * 16 * 8.0
+
+    @property
+    def samples_per_run(self) -> int:
+        return self.ticks
+
+    # ------------------------------------------------------------------ what is compiled
+
     def structure(self, chunk=None, runs=None):
         """What the compiled program depends on: timing, periods, jolt tick, Singer on/off, the
-        trackers' kinds and the chunk size (by default from the memory budget and ``runs``)."""
-        from tracklab.worlds.airborne.world import AirborneStructure, TrackerSpec
-
+        trackers' kinds and choices, and the chunk size (by default from the memory budget and ``runs``)."""
         jolt_tick = int(round(self.disturbance[0] / self.sample_dt)) if self.disturbance is not None else -1
-        trackers = tuple(TrackerSpec(tc.label, tc.kind, tc.range_velocity) for tc in self.trackers)
-        return AirborneStructure(trackers, self.timing(), self.steps, jolt_tick, self.singer,
-                                 int(chunk or self.chunk or self.default_chunk(runs)))
+        trackers = tuple(airborne_world.TrackerSpec(tc.label, tc.kind, tuple(sorted(tc.choices.items())))
+                         for tc in self.trackers)
+        return airborne_world.AirborneStructure(trackers, self.timing(), self.steps, jolt_tick, self.singer,
+                                                int(chunk or self.chunk or self.default_chunk(runs)))
 
     def params(self):
         """Every number of the experiment, as the compiled program's argument."""
-        from tracklab.worlds.airborne.closed_loop import singer_tick
-        from tracklab.worlds.airborne.world import AirborneParams
-
         phi, L = singer_tick(self.engagement, self.sample_dt, self.singer)
-        trackers, sd0 = [], []
-        for tc in self.trackers:
-            p, s = self.tracker_params(tc)
-            trackers.append(p)
-            sd0.append(s)
-        return AirborneParams(self.engagement, np.asarray(self.gains, float), np.asarray(self.noise, float),
-                              np.asarray(self.limits, float), np.asarray(self.acquisition, float),
-                              float(self.disturbance[1]) if self.disturbance is not None else 0.0, phi, L, trackers, sd0,
-                              self.window_weights())
+        made = [TRACKERS[tc.kind].numbers(self.setting(), tc.numbers) for tc in self.trackers]
+        return airborne_world.AirborneParams(
+            self.engagement, np.asarray(self.gains, float), np.asarray(self.noise, float), np.asarray(self.limits, float),
+            np.asarray(self.acquisition, float), float(self.disturbance[1]) if self.disturbance is not None else 0.0,
+            phi, L, [p for p, _ in made], [sd0 for _, sd0 in made], self.window_weights())
+
+    def world(self, structure):
+        return airborne_world.world(structure)
 
     def window_weights(self):
         """(W + 1, periods): each report window's averaging weights over the filter periods, then
@@ -130,104 +139,63 @@ class AirborneExperiment:
         with np.errstate(invalid="ignore", divide="ignore"):
             return np.stack([r / r.sum() for r in rows])
 
-    def tracker_params(self, tc: TrackerConfig, q_scale=None, r_scale=None, lam=None):
-        """(parameters, prior standard deviations) of one [[tracker]] table (``q_scale``, ``r_scale``,
-        ``lam``: values in place of the table's, possibly traced: what tuning varies)."""
-        from tracklab.worlds.airborne.boresight import ModelParams
-        from tracklab.worlds.airborne.cd_ekf import CDParams
-        from tracklab.worlds.airborne.classical import ClassicalParams, loop_gains
-        from tracklab.worlds.airborne.moose import MooseParams
-
-        timing = self.timing()
-        acq = self.acquisition
-        sm_r = (tc.model[0], tc.model[2]) if tc.model else (self.engagement.singer_sigma,) * 2
-        sd0 = np.array([acq[0], acq[1], sm_r[0], acq[0], acq[1], sm_r[0], acq[2], acq[3], sm_r[1]], float)
-        k = np.asarray(self.gains, float)
-        if tc.kind == "classical":
-            g_r, g_v = loop_gains(self.engagement.singer_sigma, self.engagement.singer_tau, self.noise[2], self.noise[3], timing)
-            return ClassicalParams(k, np.asarray(g_r, float), np.asarray(g_v, float)), sd0
-        sm, tau, sr, tr = tc.model or (self.engagement.singer_sigma, self.engagement.singer_tau,
-                                       self.engagement.singer_sigma, self.engagement.singer_tau)
-        q_scale = tc.q_scale if q_scale is None else q_scale
-        r_scale = tc.r_scale if r_scale is None else r_scale
-        lam = tc.lam if lam is None else lam
-        q = q_scale ** 0.5  # Q ∝ σ²
-        mp = ModelParams(q * np.asarray(sm, float), np.asarray(tau, float), q * np.asarray(sr, float),
-                         np.asarray(tr, float))
-        r = r_scale * (k * np.asarray(self.noise, float)) ** 2
-        params = CDParams(mp, r, k, lam * np.ones((), float))
-        if tc.kind == "moose":
-            return MooseParams(params, np.asarray(tc.levels, float), np.asarray(tc.p_stay, float)), sd0
-        return params, sd0
-
     def nominal_range(self):
         t = self.period * np.arange(1, self.steps + 1)
         return nominal_range(self.engagement, t)
 
-    sweep_metrics = (("rmse_pos", "true pointing error RMS (mrad)"), ("rmse_vel", "LOS-rate error RMS (mrad/s)"),
-                      ("nees", "average NEES (9 states)"))
-    units = ("mrad", "mrad/s")
+    @property
+    def ticks(self) -> int:
+        """Radar samples per run."""
+        return self.steps * self.average
 
-    def world(self, structure):
-        from tracklab.worlds.airborne.world import world
+    # ------------------------------------------------------------------ declared numbers
 
-        return world(structure)
+    def tables(self):
+        return "tracker", [tc.label for tc in self.trackers]
 
-    def scaled(self, params, factors: dict):
-        """``params`` with the trackers' Q (q: the Singer σ's squared) and R (r) scaled (the classical
-        loops have neither)."""
-        from tracklab.worlds.airborne.classical import ClassicalParams
-        from tracklab.worlds.airborne.moose import MooseParams
+    def declared(self):
+        return {tc.label: dict(TRACKERS[tc.kind].params) for tc in self.trackers}
 
-        q, r = factors.get("q", 1.0), factors.get("r", 1.0)
+    def values(self, params):
+        """The trackers' numbers as the file gives them (the params hold what they make)."""
+        return {tc.label: dict(tc.numbers) for tc in self.trackers}
 
-        def scale(p):
-            if isinstance(p, ClassicalParams):
-                return p
-            if isinstance(p, MooseParams):
-                return p._replace(base=scale(p.base))
-            m = p.model
-            s = np.sqrt(q)
-            return p._replace(model=m._replace(sigma_m=m.sigma_m * s, sigma_r=m.sigma_r * s), r=p.r * r)
-
-        return params._replace(trackers=[scale(p) for p in params.trackers])
-
-    def summarise(self, structure, params, sums, out, point=None) -> dict:
-        samples = out.samples if point is None or out.samples is None else out.samples.point(point)
-        return self.document(sums, out.runs, out.wall_s, out.compile_s, self.precision, samples)
-
-    # tuning (tracklab.tune): the [[tracker]] fields q_scale, r_scale and lam of the filtering trackers
-    tune_names = ("q_scale", "r_scale", "lam")
-    tune_losses = {
-        # mean over the filter periods of the mean-square true pointing error (rad²) of the runs in lock
-        "pointing": lambda s: jnp.mean(s["sum_point2"] / jnp.maximum(s["n"], 1.0)),
-        # the same of the LOS-rate estimate's error ((rad/s)², both axes)
-        "los_rate": lambda s: jnp.mean((s["sum_e2"][:, 1] + s["sum_e2"][:, 4]) / jnp.maximum(s["n"], 1.0)),
-    }
-
-    def tune_selection(self, names, labels=None) -> dict:
-        return {tc.label: tuple(names) for tc in self.trackers
-                if tc.kind != "classical" and (not labels or tc.label in labels)}
-
-    def tune_start(self, chosen) -> dict:
-        by = {tc.label: tc for tc in self.trackers}
-        return {l: {n: float(getattr(by[l], n)) for n in names} for l, names in chosen.items()}
-
-    def with_tuned(self, params, values: dict):
-        """``params`` with the trackers' q_scale, r_scale, lam from ``values`` ({label: {name: value}})."""
-        trackers = list(params.trackers)
+    def with_values(self, params, values):
+        """``params`` with the trackers' params made from their numbers and ``values``."""
+        trackers, setting = list(params.trackers), self.setting()
         for i, tc in enumerate(self.trackers):
-            if tc.label in values:
-                trackers[i] = self.tracker_params(tc, **values[tc.label])[0]
+            if values.get(tc.label):
+                trackers[i] = TRACKERS[tc.kind].numbers(setting, {**tc.numbers, **values[tc.label]})[0]
         return params._replace(trackers=trackers)
 
-    def write_tuned(self, doc, values: dict):
-        for table, tc in zip(doc["tracker"], self.trackers):
-            if tc.label in values:
-                table.update({n: float(v) for n, v in values[tc.label].items()})
+    def scalable(self):
+        """Scale factors q (the trackers' Q: their q_scale) and r (R: r_scale), where a tracker filters."""
+        return ["q", "r"] if any(TRACKERS[tc.kind].params for tc in self.trackers) else []
 
-    def tune_memory_bytes(self, runs_per_step) -> float:
-        """Reverse mode keeps every run's loop state (tracker, antenna, truth: ~200 values) per tick."""
+    def scaled(self, params, factors: dict):
+        """``params`` with the filtering trackers' q_scale and r_scale multiplied by the factors q and r."""
+        names = {"q": "q_scale", "r": "r_scale"}
+        return self.with_values(params, {tc.label: {names[f]: tc.numbers[names[f]] * v for f, v in factors.items()
+                                                    if names.get(f) in tc.numbers}
+                                         for tc in self.trackers})
+
+    # ------------------------------------------------------------------ tuning
+
+    @property
+    def tune_losses(self):
+        return {
+            # mean over the filter periods of the mean-square true pointing error (rad²) of the runs in lock
+            "pointing": lambda sums, lane: jnp.mean(sums[lane]["sum_point2"] / jnp.maximum(sums[lane]["n"], 1.0)),
+            # the same of the LOS-rate estimate's error ((rad/s)², both axes)
+            "los_rate": lambda sums, lane: jnp.mean((sums[lane]["sum_e2"][:, 1] + sums[lane]["sum_e2"][:, 4])
+                                                    / jnp.maximum(sums[lane]["n"], 1.0)),
+        }
+
+    def tune_memory_bytes(self, runs_per_step, tuned, forward) -> float:
+        """Forward mode: the batch's per-period outputs; reverse mode keeps every run's loop state
+        (tracker, antenna, truth: ~200 values) per tick."""
+        if forward:
+            return runs_per_step * self.run_bytes
         return runs_per_step * self.ticks * len(self.trackers) * 200 * 8.0
 
     def headline(self):
@@ -235,55 +203,45 @@ class AirborneExperiment:
         the whole run (the root of its samples' last window's first quantity)."""
         return ("root", [len(self.windows) * len(SAMPLE_QUANTITIES)])
 
+    # ------------------------------------------------------------------ running
+
     def monte_carlo(self, runs=None, seed=None, progress=None, precision=None, chunk=None, target_precision=None):
         """The runner's outcome: per-period sums over runs for every tracker ({label: sums}) and the
         runs' samples. With a target precision (``target_precision``, or the file's runs = "auto")
         chunks run until every tracker's pointing-error interval is that tight, ``runs`` at most."""
-        from tracklab.worlds.airborne.world import world
-        from tracklab.intervals import precision_reached
-        from tracklab.montecarlo import runner
-
         target = target_precision or self.target_precision
         enough = None if target is None else (
             lambda sums, samples, done: precision_reached(samples, target, self.level, self.headline()))
         runs = runs or self.runs
-        return runner.run(world(self.structure(chunk, runs)), self.params(), runs,
+        return runner.run(self.world(self.structure(chunk, runs)), self.params(), runs,
                           self.seed if seed is None else seed, precision=precision or self.precision, progress=progress,
                           enough=enough)
 
-    @property
-    def ticks(self) -> int:
-        """Radar samples per run."""
-        return self.steps * self.average
+    def simulate(self, runs=None, seed=None, progress=None, precision=None, target_precision=None) -> dict:
+        target = target_precision or self.target_precision
+        out = self.monte_carlo(runs or self.runs, seed, progress, precision, target_precision=target)
+        doc = self.document(out.sums, out.runs, out.wall_s, out.compile_s, precision or self.precision, out.samples)
+        if target is not None:
+            doc["auto"] = {"target": target, "max_runs": runs or self.runs, "statistic": "pointing-error RMS",
+                           "reached": precision_reached(out.samples, target, self.level, self.headline())}
+        return doc
 
-    def memory_bytes(self, runs=None) -> float:
+    def summarise(self, structure, params, sums, out, point=None) -> dict:
+        samples = out.samples if point is None or out.samples is None else out.samples.point(point)
+        return self.document(sums, out.runs, out.wall_s, out.compile_s, self.precision, samples)
+
+    def write(self, doc, folder, figures=True):
+        return write_airborne_results(doc, folder, figures)
+
+    def memory_bytes(self, runs=None, chunk=None) -> float:
         """A lower bound: a chunk's per-period outputs (error, NEES, pointing, range: 12 values a
         run and period) and the per-period statistics on the host."""
-        chunk = self.structure(runs=runs or self.runs).chunk
-        return chunk * self.run_bytes + len(self.trackers) * self.steps * 16 * 8.0
+        chunk = self.structure(chunk, runs or self.runs).chunk
+        return chunk * self.run_bytes + self.statistics_bytes
 
     def check_memory(self, runs=None, limit=None):
-        from tracklab.memory import check
-
         check(self.path, self.memory_bytes(runs), limit, f"{self.steps} filter periods a run",
               "raise airborne.sample_dt or airborne.average, or shorten airborne.duration")
-
-    def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None, max_memory=None,
-            target_precision=None):
-        from tracklab.intervals import precision_reached
-        from tracklab.report.document import run_into_folder
-
-        def simulate():
-            target = target_precision or self.target_precision
-            out = self.monte_carlo(runs or self.runs, seed, progress, precision, target_precision=target)
-            doc = self.document(out.sums, out.runs, out.wall_s, out.compile_s, precision or self.precision, out.samples)
-            if target is not None:
-                doc["auto"] = {"target": target, "max_runs": runs or self.runs, "statistic": "pointing-error RMS",
-                               "reached": precision_reached(out.samples, target, self.level, self.headline())}
-            return doc
-
-        return run_into_folder(self, out, runs, max_memory, simulate,
-                               lambda doc, tmp: write_airborne_results(doc, tmp, figures))
 
     def window_masks(self):
         t = self.period * np.arange(1, self.steps + 1)
@@ -296,8 +254,6 @@ class AirborneExperiment:
         """The statistics document of the per-period ``sums`` over ``runs`` runs; with the runs'
         ``samples`` every summary number has its ``level`` interval, and each tracker its paired
         differences to the baseline and its runs' pointing-error percentiles (``intervals``)."""
-        from tracklab.montecarlo.statistics import average_chi2_interval, rms_half_width
-
         t, masks = self.window_masks()
         steady = masks.get("steady")
         trackers = {}
@@ -353,8 +309,6 @@ class AirborneExperiment:
         """Each tracker's window summaries from its runs' samples (``closed_loop.run_samples``) with
         their intervals, the Wilson interval of its lost-lock fraction, the percentiles and
         distribution of its runs' RMS true pointing error per window, its paired differences."""
-        from tracklab.montecarlo.statistics import lane_intervals
-
         whole = {"pointing": "rmse_pos", "los_rate": "rmse_vel", "nees": "nees"}  # the whole run's keys
         names = list(self.windows)
         stats, kept = {}, []

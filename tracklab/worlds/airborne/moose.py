@@ -29,10 +29,12 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from tracklab.worlds.airborne.boresight import EPS, observation_matrix
-from tracklab.worlds.airborne.cd_ekf import CDParams, command, predict_period
-from tracklab.worlds.airborne.tracker import Timing, Tracker
+from tracklab.parameters import Constraint, Param, bounded
+from tracklab.worlds.airborne.cd_ekf import CDParams, command, filter_numbers, predict_period
+from tracklab.worlds.airborne.tracker import FILTERING, Timing, Tracker, TrackerKind
 from tracklab.linalg import mm, spd_inverse, symmetrise
 
 
@@ -119,3 +121,18 @@ def moose(timing: Timing) -> Tracker:
         return s.x.at[acc].add(s.u), s.P.at[acc, acc].add(s.spread)
 
     return Tracker(start, tick, sample, update, estimate)
+
+
+def _numbers(setting, n):
+    base, sd0 = filter_numbers(setting, n)
+    return MooseParams(base, np.asarray(n["levels"], float), np.asarray(n["p_stay"], float)), sd0
+
+
+_LEVELS = Constraint("2-21 distinct numbers (m/s²) of magnitude <= 1000",
+                     lambda v: (v.ndim == 1) & (2 <= v.size <= 21) & (np.unique(v).size == v.size) & np.all(np.abs(v) <= 1000))
+MOOSE = TrackerKind(
+    "moose", "joint EKF with Markov-switching mean accelerations (Moose-type adaptive filter)",
+    {**FILTERING, "levels": Param("mean-acceleration levels, the same set for a_e, a_d and a_r", _LEVELS, "m/s²",
+                                  (-40.0, -20.0, 0.0, 20.0, 40.0)),
+     "p_stay": Param("probability of keeping a level over one filter period", bounded(0.0, 1.0), "", 0.99)},
+    lambda timing, choices: moose(timing), _numbers)

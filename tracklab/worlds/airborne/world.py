@@ -27,31 +27,22 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from tracklab.worlds.airborne.cd_ekf import cd_ekf
-from tracklab.worlds.airborne.classical import classical
 from tracklab.worlds.airborne.closed_loop import LoopConfig, engage, run_samples, sums
-from tracklab.worlds.airborne.decoupled import decoupled
-from tracklab.worlds.airborne.moose import moose
+from tracklab.worlds.airborne.registry import TRACKERS
 from tracklab.worlds.airborne.tracker import Timing
 from tracklab.montecarlo import runner
 
 
 @dataclass(frozen=True)
 class TrackerSpec:
-    """One [[tracker]] as structure: its label, kind and (decoupled) range-velocity channel."""
+    """One [[tracker]] as structure: its label, kind and structural choices ((field, value) pairs)."""
 
     label: str
-    kind: str  # cd_ekf | decoupled | classical | moose
-    range_velocity: str = "coupled"  # decoupled: "coupled" | "separate"
+    kind: str  # a key of registry.TRACKERS
+    choices: tuple = ()
 
     def build(self, timing: Timing):
-        if self.kind == "classical":
-            return classical(timing)
-        if self.kind == "moose":
-            return moose(timing)
-        if self.kind == "cd_ekf":
-            return cd_ekf(timing)
-        return decoupled(timing, self.range_velocity == "separate")
+        return TRACKERS[self.kind].build(timing, dict(self.choices))
 
 
 @dataclass(frozen=True)
@@ -97,7 +88,7 @@ def _chunk(structure: AirborneStructure):
             out[spec.label] = sums(res, live & ~exclude[i])
             samples.append(run_samples(res, live & ~exclude[i], params.windows))
         values, ok, kept = (jnp.stack(a) for a in zip(*samples))
-        return out | {"per_run": {"values": values, "ok": ok, "kept": kept}}
+        return runner.Sums(add=out, per_run={"values": values, "ok": ok, "kept": kept})
 
     return local
 
@@ -111,12 +102,12 @@ def world(structure: AirborneStructure) -> runner.World:
 
 def compiler_options(structure: AirborneStructure) -> tuple:
     """XLA's CPU fusion emitters (``tracklab.configure()`` turns them off) on when two trackers
-    share their code (kind and range-velocity channel): each such tracker then costs about half
+    share their code (kind and structural choices): each such tracker then costs about half
     the compiling it costs with them off, while one whose code no other shares costs more. Compiling a
     16-run chunk, on against off: airborne_radar_lambda (five joint EKFs) 18.7 against 27.3 s,
     airborne_radar_mismatch (five) 19.5 against 30.9 s, airborne_radar_moose (three and two
     Moose) 21.2 against 29.3 s; airborne_radar (three kinds) 14.1 against 10.8 s,
     airborne_radar_range (three codes) 16.0 against 13.1 s; one joint EKF alone 7.2 against
     5.5 s (``benchmarks/compile.md``)."""
-    codes = {(t.kind, t.range_velocity) for t in structure.trackers}
+    codes = {(t.kind, t.choices) for t in structure.trackers}
     return (("xla_cpu_use_fusion_emitters", True),) if len(codes) < len(structure.trackers) else ()

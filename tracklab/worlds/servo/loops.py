@@ -44,6 +44,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from tracklab.filters.core import Meas
+from tracklab.worlds.servo.estimators import Estimator
 from tracklab.worlds.servo.transfer import TransferFunction, discretise, discretise_state_space
 
 G_S = TransferFunction.lead_lag(0.763, (), (0.663, 0.008))
@@ -144,19 +146,6 @@ def closed_position_loop(axis: AzimuthAxis, reference):
     return theta
 
 
-@dataclass(frozen=True)
-class Estimator:
-    """A target-angle estimator at the camera rate: Filter + ``ahead(params, state, out, n)`` -> (θ̂, ω̂, α̂).
-
-    ``ahead`` predicts ``n`` frames past the filter's latest estimate (the exposure frame).
-    """
-
-    filter: object
-    ahead: Callable
-    params: object = None
-    filter_net: object = None  # the DEKF's network, for training
-
-
 def track(axis: AzimuthAxis, mode: str, target: Callable, frames: int, key, *, estimator: Estimator | None = None,
           prior=None, frame_ticks: int = 10, delay: int = 2, noise: float = 0.0, accel_ff: float = 0.0,
           perfect: bool = False, estimator_params=None):
@@ -194,8 +183,6 @@ def track(axis: AzimuthAxis, mode: str, target: Callable, frames: int, key, *, e
         delivered = j >= delay
         held = jnp.where(delivered, d_miss, held)
         if flt is not None:
-            from tracklab.filters.core import Meas
-
             z = jnp.where(delivered, d_miss + d_enc, jnp.nan)[None]
             est, out = flt.step(params, est, Meas(z, t0, jnp.asarray(True)))
             pred = estimator.ahead(params, est, out, delay)  # (θ̂, ω̂, α̂) at this frame's first tick (eq. 17)
@@ -230,32 +217,6 @@ def track(axis: AzimuthAxis, mode: str, target: Callable, frames: int, key, *, e
     _, (ticks, rate_err) = jax.lax.scan(frame_step, carry0, jnp.arange(frames))
     t, tg, enc, err = (a.reshape(-1) for a in ticks)
     return {"t": t, "target": tg, "encoder": enc, "error": err, "rate_error": rate_err}
-
-
-def kalman_estimator(frame_dt: float, sigma: float, q: float) -> Estimator:
-    """The baseline: a CA-model Kalman filter on the measured angle, predicting n frames ahead with Φⁿ."""
-    from tracklab.filters import build, noise_params
-    from tracklab.models import ca
-    from tracklab.sensors import Sensor
-
-    model = ca(1, frame_dt)
-    flt = build("kf", model, Sensor("cartesian", 1, (sigma,)), noise_params(q, jnp.reshape(jnp.asarray(sigma) ** 2, (1,))))
-    F = jnp.asarray(model.F)
-
-    def ahead(params, state, out, n):
-        return jnp.linalg.matrix_power(F, n) @ state.x
-
-    return Estimator(flt, ahead)
-
-
-def dekf_estimator(net, params) -> Estimator:
-    """The dual EKF of paper 003, predicting n frames ahead with the network (eq. 17)."""
-    from tracklab.filters.dual_ekf import dual_ekf, predict_ahead
-
-    def ahead(p, state, out, n):
-        return predict_ahead(net, state.x, state.w, n)
-
-    return Estimator(dual_ekf(net, params), ahead, params, net)
 
 
 def sine_target(amplitude, omega):

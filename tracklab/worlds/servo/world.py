@@ -34,7 +34,8 @@ import jax.numpy as jnp
 
 from tracklab.filters.core import Prior
 from tracklab.montecarlo import runner
-from tracklab.worlds.servo.loops import AzimuthAxis, dekf_estimator, kalman_estimator, sine_target, track
+from tracklab.worlds.servo.loops import AzimuthAxis, sine_target, track
+from tracklab.worlds.servo.registry import ESTIMATORS
 
 LOST = 180.0  # deg: a run whose tracking error passes half a turn has lost the target (diverged)
 
@@ -74,8 +75,8 @@ class CaseSpec:
 
     label: str
     mode: str  # double_loop | velocity_lag | on_axis
-    estimator: str | None  # "kf", "dekf", "perfect" or None
-    network: Any = None  # a DEKF's Network (hidden units, input scaling, frame period, reading)
+    estimator: str | None  # an estimator kind (registry.ESTIMATORS), "perfect" or None
+    network: Any = None  # what its code is compiled for beyond its kind (a DEKF's Network)
 
 
 @dataclass(frozen=True)
@@ -128,28 +129,26 @@ def run_samples(max_err, random_err, rate_err=None):
 
 def case_sums(max_err, random_err, rate_err, live, track_ms=None, rate_ms=None):
     """One case's sums over runs from each run's statistics (deg, deg, deg/s; ``rate_err`` None
-    without an estimator): healthy runs counted and summed (their largest maximum kept), the
-    others counted as diverged: a non-finite statistic, or an error past ``LOST``."""
+    without an estimator): (what adds up, what is the largest) — healthy runs counted and summed
+    (their largest maximum kept), the others counted as diverged: a non-finite statistic, or an
+    error past ``LOST``."""
     ok = healthy(max_err, random_err, rate_err)
     use = live & ok
     dtype = jnp.result_type(max_err)
-    return {
+    added = {
         "healthy": jnp.sum(use.astype(dtype)),
         "diverged": jnp.sum((live & ~ok).astype(dtype)),
         "sum_max_err": jnp.sum(jnp.where(use, max_err, 0.0)),
-        "max_max_err": jnp.max(jnp.where(use, max_err, -jnp.inf)),
         "sum_random_err": jnp.sum(jnp.where(use, random_err, 0.0)),
         "sum_rate_err": jnp.sum(jnp.where(use, rate_err, 0.0)) if rate_err is not None else jnp.zeros((), dtype),
     } | {name: jnp.sum(jnp.where(use, v, 0.0)) for name, v in (("sum_track_ms", track_ms), ("sum_rate_ms", rate_ms))
          if v is not None}
+    return added, {"max_max_err": jnp.max(jnp.where(use, max_err, -jnp.inf))}
 
 
 def _estimator(case: CaseSpec, frame_dt):
-    if case.estimator == "kf":
-        return kalman_estimator(frame_dt, 1.0, 1.0)  # its numbers come with the params
-    if case.estimator == "dekf":
-        return dekf_estimator(case.network, None)
-    return None
+    """A case's estimator, its numbers arriving with the params (none for "perfect" or none)."""
+    return ESTIMATORS[case.estimator].build(frame_dt, case.network) if case.estimator in ESTIMATORS else None
 
 
 def _chunk(structure: ServoStructure):
@@ -176,17 +175,17 @@ def _chunk(structure: ServoStructure):
     def local(params: ServoParams, keys, live, exclude):
         # built while the program is traced, in its precision (their constants are float64 in a float64 run)
         estimators = [_estimator(c, structure.frame_dt) for c in structure.cases]
-        out, values, oks = {}, [], []
+        added, largest, first, values, oks = {}, {}, {}, [], []
         for i, (case, est) in enumerate(zip(structure.cases, estimators)):
             mx, rnd, rate, track_ms, rate_ms, err, rate_err = jax.vmap(
                 lambda k: one(params, case, est, params.estimators[i], k))(keys)
             rate = rate if est is not None else None
-            out[case.label] = case_sums(mx, rnd, rate, live & ~exclude[i], track_ms, rate_ms)
-            out[case.label] |= {"example_error": err[0], "example_rate_error": rate_err[0]}
+            added[case.label], largest[case.label] = case_sums(mx, rnd, rate, live & ~exclude[i], track_ms, rate_ms)
+            first[case.label] = {"example_error": err[0], "example_rate_error": rate_err[0]}
             values.append(jnp.stack(run_samples(mx, rnd, rate)))
             oks.append(healthy(mx, rnd, rate) & live & ~exclude[i])
         values = jnp.stack(values)
-        return out | {"per_run": {"values": values, "ok": jnp.stack(oks), "kept": values[:, :1]}}
+        return runner.Sums(added, largest, first, {"values": values, "ok": jnp.stack(oks), "kept": values[:, :1]})
 
     return local
 

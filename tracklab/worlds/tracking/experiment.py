@@ -14,11 +14,21 @@ from typing import Any
 
 import numpy as np
 
+import jax.numpy as jnp
+
+from tracklab import __version__
+from tracklab.filters.kind import WriteBack
 from tracklab.filters.registry import KINDS
+from tracklab.memory import check
 from tracklab.montecarlo.statistics import REPORT_WINDOW, statistics
+from tracklab.pytree import named_leaves, with_leaves
 from tracklab.report.document import decimate, series_stride, write_tables
-from tracklab.sensors import SensorSuite
+from tracklab.report.figures import plot_figures
+from tracklab.sensors import SENSOR_SIGMAS, SensorSuite
+from tracklab.worlds import protocol
 from tracklab.worlds.tracking import outcome, scan
+from tracklab.worlds.tracking.errors import LOSSES, unpack
+from tracklab.worlds.tracking.lanes import DeclaredFilter, FilterSpec, hashable
 
 
 @dataclass(frozen=True)
@@ -41,8 +51,8 @@ def declared_of(fc) -> dict:
 
 
 @dataclass
-class Experiment:
-    """A validated experiment: everything ``tracklab run`` needs."""
+class Experiment(protocol.Experiment):
+    """An open-loop experiment, validated: everything ``tracklab run`` needs."""
 
     path: Path | None  # the experiment file; None: built in Python (tracklab.experiment)
     name: str
@@ -65,9 +75,22 @@ class Experiment:
     baseline: str | None = None  # the filter the paired comparisons are to (None: the first)
     target_precision: float | None = None  # runs = "auto": stop when every position RMSE is this tight (relative)
 
+    # what a sweep plots: (summary key, title)
+    sweep_metrics = (("rmse_pos", "time-averaged position RMSE ({pos})"), ("nees", "average NEES"),
+                     ("pred_err_rms", "RMS one-step prediction error ({pos})"))
+
     @property
     def dim(self) -> int:
         return self.scenario.dim
+
+    @property
+    def units(self):
+        return tuple(self.scenario.units)
+
+    @property
+    def nees_dof(self) -> int:
+        """The NEES's degrees of freedom (position and velocity): its consistent value."""
+        return 2 * self.dim
 
     def prior_covariance(self) -> np.ndarray:
         d = self.dim
@@ -76,8 +99,6 @@ class Experiment:
     def lane(self, fc):
         """A filter as the tracking world's structure holds it: a built-in [[filter]] as its
         declaration, a user's own ``FilterSpec`` as it is."""
-        from tracklab.worlds.tracking.lanes import DeclaredFilter, hashable
-
         if not isinstance(fc, FilterConfig):
             return fc
         return DeclaredFilter(fc.label, fc.kind, fc.model, hashable(fc.options), tuple(fc.sensors), fc.fusion)
@@ -86,38 +107,34 @@ class Experiment:
         """(view function or None, measurement model) of what a filter sees."""
         return self.lane(fc).sees(self.sensor)
 
+    # ------------------------------------------------------------------ what is compiled
+
     def structure(self, chunk=None, runs=None):
         """What the compiled program depends on: the filters' kinds, models, options and views,
         the report windows and the chunk size (from ``runs`` when the file sets none); never the
         run count itself, nor any number."""
-        from tracklab.worlds.tracking.scan import TrackingStructure, default_chunk, windows_of
-
         lanes = tuple(self.lane(fc) for fc in self.filters)
-        chunk = int(chunk or self.chunk or default_chunk(self.scenario, self.sensor, runs=runs))
-        return TrackingStructure(lanes, windows_of(self.pred_windows), chunk)
+        chunk = int(chunk or self.chunk or scan.default_chunk(self.scenario, self.sensor, runs=runs))
+        return scan.TrackingStructure(lanes, scan.windows_of(self.pred_windows), chunk)
 
     def params(self):
         """Every number of the experiment, as the compiled program's argument."""
-        from tracklab.worlds.tracking.scan import TrackingParams
-
         filters = [{k: np.asarray(v, float) for k, v in fc.params.items()} if isinstance(fc, FilterConfig)
                    else fc.filter.params for fc in self.filters]
-        return TrackingParams(self.scenario, self.sensor, self.prior_covariance(), self.prior["acc_sigma"] ** 2, filters)
+        return scan.TrackingParams(self.scenario, self.sensor, self.prior_covariance(), self.prior["acc_sigma"] ** 2,
+                                   filters)
+
+    def world(self, structure):
+        return scan.world(structure)
 
     def ran_with(self) -> dict:
         """Each filter's parameters as it runs: label -> {leaf name: value} (``pytree.named_leaves``)."""
-        from tracklab.pytree import named_leaves
-
         return {fc.label: {n: np.asarray(v, float) for n, v in named_leaves(p).items()}
                 for fc, p in zip(self.filters, self.params().filters)}
 
     def filter_specs(self):
         """The experiment's filters built with its numbers, as ``FilterSpec``s: to run one on
         measurements of one's own (``run_filter``) or in ``tracklab.monte_carlo``."""
-        import jax.numpy as jnp
-
-        from tracklab.worlds.tracking.lanes import FilterSpec
-
         structure, params = self.structure(), self.params()
         specs = []
         for f, p in zip(structure.filters, params.filters):
@@ -129,44 +146,51 @@ class Experiment:
             specs.append(FilterSpec(f.label, r.filter, f.kind, f.sensors, r.model, r.view, r.prior_extra_var))
         return specs
 
-    declared = staticmethod(lambda fc: declared_of(fc))
+    # ------------------------------------------------------------------ declared numbers
+
+    def tables(self):
+        return "filter", [fc.label for fc in self.filters]
+
+    def declared(self):
+        return {fc.label: declared_of(fc) for fc in self.filters}
+
+    def values(self, params):
+        return {fc.label: named_leaves(p) for fc, p in zip(self.filters, params.filters)}
+
+    def with_values(self, params, values):
+        return params._replace(filters=[with_leaves(p, values[fc.label]) if values.get(fc.label) else p
+                                        for fc, p in zip(self.filters, params.filters)])
+
+    def write_where(self, label):
+        fc = next(f for f in self.filters if f.label == label)
+        if isinstance(fc, FilterSpec):
+            return None
+        _, meas = self.view(fc)
+        return WriteBack(fc.model, meas.kind, SENSOR_SIGMAS.get(meas.kind, ()))
+
+    # ------------------------------------------------------------------ tuning
 
     @property
-    def tune_names(self) -> tuple[str, ...]:
-        """What ``tracklab tune --params`` may name in this file: the tunable numbers its filters declare."""
-        return tuple(dict.fromkeys(n for fc in self.filters for n, p in declared_of(fc).items() if p.tune))
+    def tune_losses(self):
+        """Time-averaged over the report window, per filter: position MSE, one-step prediction MSE,
+        innovation negative log-likelihood (needs no truth)."""
+        d, w = self.dim, self.window
+        return {name: (lambda sums, lane, f=f: f(unpack(sums, d)[lane], w)) for name, f in LOSSES.items()}
 
-    @property
-    def nees_dof(self) -> int:
-        """The NEES's degrees of freedom (position and velocity): its consistent value."""
-        return 2 * self.dim
+    def tune_memory_bytes(self, runs_per_step, tuned, forward, eval_runs=None) -> float:
+        """Reverse mode: the filter states it keeps for every run and step of a batch; forward mode,
+        which keeps no step's states: the batch's random draws for every step and the current step's
+        filter states with one tangent per tuned number. Plus the held-out evaluation's draws."""
+        n = [fc.report_layout(self.dim).n if isinstance(fc, FilterSpec) else (3 if fc.model == "ca" else 2) * self.dim
+             for fc in self.filters]  # each filter's state dimension
+        state = sum(k * (1 + k) for k in n)  # its mean and covariance
+        width = 2 * self.dim + self.sensor.m
+        held_out = min(eval_runs or min(self.runs, 2000), 1000) * self.steps * width * 4.0
+        if forward:
+            return runs_per_step * (self.steps * width + state * (1 + tuned)) * 8.0 + held_out
+        return runs_per_step * self.steps * state * 8.0 + held_out
 
-    # what a sweep plots: (summary key, title)
-    sweep_metrics = (("rmse_pos", "time-averaged position RMSE ({pos})"), ("nees", "average NEES"),
-                     ("pred_err_rms", "RMS one-step prediction error ({pos})"))
-
-    def world(self, structure):
-        return scan.world(structure)
-
-    def scaled(self, params, factors: dict):
-        """``params`` with every filter's parameters named in ``factors`` multiplied by them (those its
-        kind, or its factory, declares scalable)."""
-        def scale(fc, p):
-            declared = declared_of(fc)
-            return {k: (v * factors[k] if k in factors and k in declared and declared[k].sweep else v)
-                    for k, v in p.items()} if isinstance(p, dict) else p
-
-        return params._replace(filters=[scale(fc, p) for fc, p in zip(self.filters, params.filters)])
-
-    def summarise(self, structure, params, sums, out, point=None) -> dict:
-        """The statistics document of one parameter set's sums (the runner's ``out``; ``point``:
-        which of its grid points)."""
-        return statistics(outcome.result(structure, params, sums, out, point), self.window, self.pred_windows, self.level,
-                          self.baseline)
-
-    @property
-    def units(self):
-        return tuple(getattr(self.scenario, "units", ("m", "m/s")))
+    # ------------------------------------------------------------------ running
 
     def monte_carlo(self, runs=None, seed=None, progress=None, chunk=None, precision=None, target_precision=None):
         """The Monte-Carlo result of ``runs`` runs (default the file's); with a target precision
@@ -175,40 +199,46 @@ class Experiment:
         target = target_precision or self.target_precision
         runs = runs or self.runs
         return outcome.run(self.structure(chunk, runs), self.params(), runs, self.seed if seed is None else seed,
-                            progress=progress, precision=precision or self.precision, target=target, level=self.level)
+                           progress=progress, precision=precision or self.precision, target=target, level=self.level)
+
+    def simulate(self, runs=None, seed=None, progress=None, precision=None, target_precision=None) -> dict:
+        return stats_document(self, self.monte_carlo(runs=runs, seed=seed, progress=progress, precision=precision,
+                                                     target_precision=target_precision))
+
+    def summarise(self, structure, params, sums, out, point=None) -> dict:
+        """The statistics document of one parameter set's sums (the runner's ``out``; ``point``:
+        which of its grid points)."""
+        return statistics(outcome.result(structure, params, sums, out, point), self.window, self.pred_windows, self.level,
+                          self.baseline)
+
+    def write(self, doc, folder, figures=True):
+        return write_results(doc, folder, figures)
+
+    @property
+    def run_bytes(self) -> float:
+        """A run's random draws (float32) for every step."""
+        return self.steps * (2 * self.dim + self.sensor.m) * 4.0
+
+    @property
+    def statistics_bytes(self) -> float:
+        return self.steps * (len(self.filters) * 64 + self.dim**2) * 8.0
 
     def memory_bytes(self, runs=None, chunk=None) -> float:
         """A lower bound on the bytes a run needs: one chunk's random draws (float32) for every
         step, and each filter's per-step statistics on the host."""
         chunk = self.structure(chunk, runs or self.runs).chunk
-        width = 2 * self.dim + self.sensor.m
-        return chunk * self.steps * width * 4.0 + len(self.filters) * self.steps * 64 * 8.0
+        return chunk * self.run_bytes + len(self.filters) * self.steps * 64 * 8.0
 
     def check_memory(self, runs=None, limit=None):
-        from tracklab.memory import check
-
         check(self.path or "tracklab.experiment", self.memory_bytes(runs), limit, f"a chunk of runs x {self.steps} steps",
               "set a smaller experiment.chunk, or fewer experiment.steps")
 
-    def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None, max_memory=None,
-            target_precision=None):
-        """Run and write the results folder; returns the statistics dictionary.
-
-        The output folder and the memory need are checked before anything compiles."""
-        from tracklab.report.document import run_into_folder
-        from tracklab.worlds.tracking.experiment import write_results
-
-        return run_into_folder(self, out, runs, max_memory,
-                               lambda: self.monte_carlo(runs=runs, seed=seed, progress=progress, precision=precision,
-                                                        target_precision=target_precision),
-                               lambda res, tmp: write_results(self, res, tmp, figures=figures))
-
 
 def stats_document(exp, res):
-    from tracklab import __version__
-
-    level = getattr(exp, "level", 0.95)
-    st = statistics(res, exp.window, exp.pred_windows, level, getattr(exp, "baseline", None))
+    """The statistics document (stats.json) of an open-loop experiment (or recorded data judged
+    like one: ``recorded.Recorded``) and its Monte-Carlo result."""
+    level = exp.level
+    st = statistics(res, exp.window, exp.pred_windows, level, exp.baseline)
     ran = exp.ran_with()
     stride = series_stride(res.steps)
     st = {
@@ -237,7 +267,7 @@ def stats_document(exp, res):
             | {k: f[k] for k in ("half_width", "intervals", "paired", "cdf") if k in f} | {"series": f["series"]}
             for label, f in st["filters"].items()
         },
-    } | ({"auto": res.auto} if getattr(res, "auto", None) else {})
+    } | ({"auto": res.auto} if res.auto else {})
 
 def example_of(exp, res):
     """Run 0 in CV layout: truth, each filter's estimates and (Cartesian sensors) the measurements."""
@@ -252,12 +282,9 @@ def example_of(exp, res):
         doc["measurements"] = ex["z"]
     return doc
 
-def write_results(exp, res, folder: Path, figures=True):
-    """Write the statistics document, tables and figures into ``folder``; return the document."""
-    doc = stats_document(exp, res)
+def write_results(doc, folder: Path, figures=True):
+    """A statistics document's tables and (``figures``) figures in ``folder``; returns the document."""
     write_tables(folder, doc)
     if figures:
-        from tracklab.report.figures import plot_figures
-
         plot_figures(doc, folder)
     return doc

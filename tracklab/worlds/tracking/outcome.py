@@ -79,8 +79,7 @@ def result(structure, params, sums, out: runner.Outcome, point: int | None = Non
         pcrlb=pcrlb64(scenario, np.asarray(params.P0, np.float64), info / out.runs) if scenario.gaussian else None,
         wall_s=out.wall_s, compile_s=out.compile_s, labels=structure.labels,
         kinds={f.label: f.kind for f in structure.filters}, example=example,
-        axes=tuple(getattr(scenario, "axes", ("x", "y", "z")[: scenario.dim])),
-        units=tuple(getattr(scenario, "units", ("m", "m/s"))), windows=[n for n, _ in structure.windows],
+        axes=tuple(scenario.axes), units=tuple(scenario.units), windows=[n for n, _ in structure.windows],
         samples=samples, sample_names=sample_names(scenario.dim, windows),
         report_window=(int(report[0]) + 1, int(report[-1]) + 1))
 

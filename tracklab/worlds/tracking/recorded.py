@@ -29,6 +29,9 @@ from tracklab.worlds.tracking.errors import (MAXIMA, SUMS, accumulated_lengths, 
                                                sample_names)
 from tracklab.worlds.tracking.outcome import MonteCarloResult
 from tracklab.montecarlo.samples import RunSamples
+from tracklab.filters.core import Out
+from tracklab.output import atomic_folder, check_results_folder
+from tracklab.worlds.tracking.experiment import stats_document, write_results
 
 
 def recorded_sums(out, truth, layout, windows: dict | None = None) -> dict:
@@ -94,6 +97,8 @@ class Recorded:
     raw: dict
     parameters: dict = field(default_factory=dict)  # label -> {name: value}, as given
     path: Path | None = None
+    level: float = 0.95  # of every interval
+    baseline: str | None = None  # the paired differences are to the first filter
     sensor = None  # no simulated sensor (the figures draw no measurements)
 
     def ran_with(self) -> dict:
@@ -113,15 +118,13 @@ def evaluate(results, truth, *, dt: float, name: str = "recorded", window: tuple
     measurements against the truth; with ``out``, also the results folder (stats.json,
     table.md, table.csv, figures), written as ``tracklab run`` writes one. The arguments
     are those of ``judge``."""
-    from tracklab.output import atomic_folder, check_results_folder
-    from tracklab.worlds.tracking.experiment import stats_document, write_results
-
     recorded, res = judge(results, truth, dt=dt, name=name, window=window, windows=windows, params=params)
     if out is None:
         return stats_document(recorded, res)
     folder = check_results_folder(out, None)
+    doc = stats_document(recorded, res)
     with atomic_folder(folder, None) as tmp:
-        return write_results(recorded, res, tmp, figures=figures)
+        return write_results(doc, tmp, figures=figures)
 
 def judge(results, truth, *, dt: float, name: str = "recorded", window: tuple[int, int] | None = None,
           windows: dict | None = None, params: dict | None = None):
@@ -132,10 +135,7 @@ def judge(results, truth, *, dt: float, name: str = "recorded", window: tuple[in
     measurement step in CV layout [x, ẋ, y, ẏ(, z, ż)]. ``window`` (first, last step) is the
     report window, ``windows`` named step masks of the one-step prediction error, ``params``
     what to record of each filter's parameters. Returns (Recorded, MonteCarloResult), what
-    ``tracklab.report.stats_document`` and ``write_results`` take."""
-    import jax
-
-    from tracklab.filters.core import Out
+    ``worlds.tracking.experiment.stats_document`` takes."""
 
     if not isinstance(results, dict):
         results = {"filter": results}

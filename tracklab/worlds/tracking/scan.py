@@ -105,7 +105,7 @@ def _streams(scenario, views) -> bool:
     """Whether the chunk can draw truth and measurements step by step inside its scan: the
     truth is the same in every run or has a one-step ``advance``, and every filter sees each
     step's measurement alone (a view that registers one sensor's reports in time needs them all)."""
-    truth_ok = not scenario.per_run or hasattr(scenario, "advance")
+    truth_ok = not scenario.per_run or scenario.advance is not None
     return truth_ok and all(v is None or getattr(v, "rowwise", False) for v in views)
 
 def _stand_in(tree):
@@ -270,31 +270,31 @@ def _chunk(structure: TrackingStructure):
         w_masks = jnp.asarray(window_mask(windows))  # (T, windows)
         xs = jax.tree_util.tree_map(again, (jnp.arange(T), t, src, z_views, lanes_in, w_masks))
         (_, _, finals), out = jax.lax.scan(scan_step, carry0, xs)
-        out["_example"]["truth"] = jnp.concatenate([(truth0[0] if truth_batched else truth0)[None],
-                                                    out["_example"]["truth"][:T]])
-        out["_example"]["z"] = out["_example"]["z"][:T]
-        out["_info"] = out["_info"][:T] if with_bound else jnp.zeros((T, d, d), dtype)
+        example = {"truth": jnp.concatenate([(truth0[0] if truth_batched else truth0)[None], out["_example"]["truth"][:T]]),
+                   "z": out["_example"]["z"][:T]}
+        added = {"_info": out["_info"][:T] if with_bound else jnp.zeros((T, d, d), dtype)}
+        largest, first = {}, {"_example": example}
         n = len(lanes)
         flags, values, oks = [None] * n, [None] * n, [None] * n
         for g, (_, _, bad_any, (runmax, acc)) in zip(groups, finals):
             for j, i in enumerate(g):
                 ln = lanes[i]
-                sums, maxima, first = (a[1:] for a in out[ln.label])
-                out[ln.label] = {"sums": sums, "maxima": maxima, "example_x": first[:, :2 * d],
-                                 "example_var": first[:, 2 * d:]}  # cut by _unpack
+                sums, maxima, run0 = (a[1:] for a in out[ln.label])
                 ok = live & ~exclude[i] & ~bad_any[j]
+                added[ln.label] = {"sums": sums, "diverged": jnp.sum((live & bad_any[j]).astype(dtype))}  # cut by unpack
                 for w, name in enumerate(names):  # sum over runs of each run's largest |error| (per axis, then norm)
-                    out[ln.label][f"runmax_pred@{name}"] = jnp.sum(jnp.where(ok, runmax[j, w], 0.0), axis=-1)
-                out[ln.label]["diverged"] = jnp.sum((live & bad_any[j]).astype(dtype))
+                    added[ln.label][f"runmax_pred@{name}"] = jnp.sum(jnp.where(ok, runmax[j, w], 0.0), axis=-1)
+                largest[ln.label] = {"maxima": maxima}
+                first[ln.label] = {"example_x": run0[:, :2 * d], "example_var": run0[:, 2 * d:]}
                 flags[i] = live & bad_any[j]
                 values[i] = jnp.concatenate([acc[j] / jnp.asarray(lengths, dtype)[:, None], runmax[j].reshape(-1, B)])
                 oks[i] = ok
-        # (filters, B): the runner runs the chunk again without them
-        out["diverged_runs"] = jnp.stack(flags) if flags else jnp.zeros((0, B), bool)
+        per_run = None
         if values:  # each run's time-averaged samples, for intervals and paired comparisons
             values = jnp.stack(values)
-            out["per_run"] = {"values": values, "ok": jnp.stack(oks), "kept": jnp.sqrt(values[:, :1])}
-        return out
+            per_run = {"values": values, "ok": jnp.stack(oks), "kept": jnp.sqrt(values[:, :1])}
+        # diverged (filters, B): the runner runs the chunk again without them
+        return runner.Sums(added, largest, first, per_run, jnp.stack(flags) if flags else jnp.zeros((0, B), bool))
 
 
     return local
