@@ -9,7 +9,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab.filters.core import Filter, Meas, Prior
+from tracklab.filters.core import Filter, Meas, Prior, trace_problem
+from tracklab.montecarlo.runner import in_precision
 from tracklab.pytree import like
 
 
@@ -37,9 +38,6 @@ def run_filter(flt: Filter, z, *, x0, P0, params=None, dt: float = 1.0, precisio
     filter's own constants follow the mode it was built in: build it inside
     ``jax.enable_x64(False)`` for single precision throughout).
     """
-    from tracklab.filters.core import trace_problem
-    from tracklab.montecarlo.runner import in_precision
-
     if np.ndim(z) not in (2, 3):
         raise ValueError(f"run_filter: z has shape {np.shape(z)}: expected (T, m) or (N, T, m)")
     n = np.shape(x0)[-1] if np.ndim(x0) else 0

@@ -15,8 +15,20 @@ import json
 import math
 from pathlib import Path
 
-from tracklab.output import TABLE_BEGIN as BEGIN, TABLE_END as END  # the results README's table markers
+from tracklab.config import load_experiment
+from tracklab.config.paths import parse_grid
+from tracklab.errors import ConfigError
+from tracklab.intervals import with_half_width
+from tracklab.output import TABLE_BEGIN as BEGIN  # the results README's table markers
+from tracklab.output import TABLE_END as END
+from tracklab.output import (
+    check_results_folder,
+    check_results_parent,
+    write_text_atomically,
+)
 from tracklab.report.tables import md_cell
+from tracklab.studies.files import check_tune, run_study
+from tracklab.studies.sweep import check_sweep
 
 METRICS = {  # titles without units: the "unit" column gives each row's (m, or deg for a mount)
     "unit": ("unit", "{}"),
@@ -51,8 +63,6 @@ def _number(v) -> bool:
 
 def read_stats(folder) -> dict:
     """A results folder's stats.json, checked: ConfigError in one line if it is not one."""
-    from tracklab.errors import ConfigError
-
     path = Path(folder) / "stats.json"
     if not path.is_file():
         raise ConfigError(folder, "stats.json", str(path), "missing: not a results folder of tracklab run")
@@ -103,8 +113,6 @@ def combined_rows(folders, metrics=DEFAULT_METRICS, docs=None, half_widths=None)
 def combined_table(folders, fmt="md", metrics=DEFAULT_METRICS, docs=None) -> str:
     """Every folder's filters in one table (md, csv or latex); a number with an interval is
     ``value ± half-width`` (csv: a ``<metric>_hw`` column)."""
-    from tracklab.intervals import with_half_width
-
     hws = []
     rows = combined_rows(folders, metrics, docs, hws)
     titles = ["results", "filter"] + [METRICS[m][0] for m in metrics]
@@ -136,8 +144,6 @@ def combined_table(folders, fmt="md", metrics=DEFAULT_METRICS, docs=None) -> str
 
 def update_readme(readme: Path, table: str):
     """Replace the text between the table markers (appending them if absent)."""
-    from tracklab.output import write_text_atomically
-
     text = readme.read_text() if readme.exists() else "# Results\n"
     block = f"{BEGIN}\n{table}{END}"
     if BEGIN in text and END in text:
@@ -150,11 +156,6 @@ def update_readme(readme: Path, table: str):
 
 def _check_outputs(exps, jobs, experiments_dir: Path, results_dir: Path, quick, max_memory):
     """Every output of every job and study, and every job's memory, checked before anything runs."""
-    from tracklab.output import check_results_folder, check_results_parent
-    from tracklab.studies.files import check_tune
-    from tracklab.config.paths import parse_grid
-    from tracklab.studies.sweep import check_sweep
-
     check_results_parent(results_dir, experiments_dir)
     for exp, runs, out in jobs:
         check_results_folder(out, exp.path, "output folder")
@@ -177,10 +178,6 @@ def reproduce(experiments_dir="experiments", results_dir="results", quick=False,
               figures=True):
     """Run every experiment file and its studies (with their PNG figures if ``figures``); return
     the results folders written, in order."""
-    from tracklab.config import load_experiment
-    from tracklab.errors import ConfigError
-    from tracklab.studies.files import run_study
-
     folder = Path(experiments_dir)
     if not folder.is_dir():
         raise ConfigError(folder, "--experiments", str(folder), "must be a folder of experiment files (*.toml)")

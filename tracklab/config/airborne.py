@@ -74,12 +74,25 @@ from pathlib import Path
 
 import numpy as np
 
-from tracklab.worlds.airborne.engagement import Engagement, nominal_range
-from tracklab.config.fields import (MAX_RUN_STEPS, WINDOW_NAME_RE, Section, auto_runs, check_sections, check_unique,
-                                    declared_numbers, experiment_header, level_and_baseline)
+from tracklab.config.fields import (
+    MAX_RUN_STEPS,
+    WINDOW_NAME_RE,
+    Section,
+    auto_runs,
+    check_sections,
+    check_unique,
+    declared_numbers,
+    experiment_header,
+    level_and_baseline,
+)
 from tracklab.errors import ConfigError
 from tracklab.worlds.airborne.closed_loop import MRAD
-from tracklab.worlds.airborne.experiment import MAX_TICKS, AirborneExperiment, TrackerConfig
+from tracklab.worlds.airborne.engagement import Engagement, nominal_range
+from tracklab.worlds.airborne.experiment import (
+    MAX_TICKS,
+    AirborneExperiment,
+    TrackerConfig,
+)
 from tracklab.worlds.airborne.registry import TRACKERS
 from tracklab.worlds.airborne.tracker import Setting, Timing
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import importlib
 import re
 import sys
+import tomllib
 from pathlib import Path
 from typing import NamedTuple
 
@@ -103,8 +104,6 @@ def python_path(file, value) -> tuple[Path, ...]:
 def kinds_of_ones_own(path) -> list[tuple[str, str, object]]:
     """The kinds of one's own an experiment file names: (field, "module:factory", the factory, or the
     ConfigError that loading it gives), for ``tracklab list``."""
-    import tomllib
-
     try:
         raw = tomllib.loads(Path(path).read_text())
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):

@@ -18,10 +18,16 @@ import numpy as np
 from tracklab.config.fields import MAX_RUN_STEPS, MAX_RUNS, NAME_RE, check_unique
 from tracklab.config.tracking import _parse_filter, _pred_windows
 from tracklab.errors import ConfigError
-from tracklab.worlds.tracking.experiment import Experiment, FilterConfig
 from tracklab.filters.core import Filter
 from tracklab.scenarios import Scenario
-from tracklab.sensors import SENSOR_KINDS, SENSOR_SIGMAS, CustomSensor, Sensor, SensorSuite
+from tracklab.sensors import (
+    SENSOR_KINDS,
+    SENSOR_SIGMAS,
+    CustomSensor,
+    Sensor,
+    SensorSuite,
+)
+from tracklab.worlds.tracking.experiment import Experiment, FilterConfig
 from tracklab.worlds.tracking.lanes import FilterSpec
 
 WHERE = "tracklab.experiment"  # what the one-line errors name in place of a file

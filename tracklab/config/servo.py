@@ -51,10 +51,27 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from tracklab.config.fields import (MAX_RUN_STEPS, Section, auto_runs, check_sections, check_unique, declared_numbers,
-                                    declared_options, experiment_header, level_and_baseline)
+from tracklab.config.fields import (
+    MAX_RUN_STEPS,
+    Section,
+    auto_runs,
+    check_sections,
+    check_unique,
+    declared_numbers,
+    declared_options,
+    experiment_header,
+    level_and_baseline,
+)
 from tracklab.errors import ConfigError
-from tracklab.worlds.servo.experiment import CAMERA_LOOPS, MAX_TICKS, TARGET_KINDS, TICK_RANGE, Case, EstimatorConfig, ServoExperiment
+from tracklab.worlds.servo.experiment import (
+    CAMERA_LOOPS,
+    MAX_TICKS,
+    TARGET_KINDS,
+    TICK_RANGE,
+    Case,
+    EstimatorConfig,
+    ServoExperiment,
+)
 from tracklab.worlds.servo.loops import MODES, AzimuthAxis
 from tracklab.worlds.servo.registry import ESTIMATORS
 

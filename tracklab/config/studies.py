@@ -34,8 +34,8 @@ from dataclasses import dataclass
 from tracklab.config.fields import MAX_RUNS, Section
 from tracklab.config.paths import parse_grid
 from tracklab.errors import ConfigError
-from tracklab.worlds.tracking.experiment import declared_of
 from tracklab.worlds.tracking.errors import LOSSES
+from tracklab.worlds.tracking.experiment import declared_of
 
 OUT_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*(/[A-Za-z0-9_][A-Za-z0-9_.-]*)*")
 

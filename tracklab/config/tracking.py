@@ -10,25 +10,50 @@ import dataclasses
 import math
 from pathlib import Path
 
+import jax
 import numpy as np
 
-from tracklab.config.fields import (MAX_RUN_STEPS, MAX_RUNS, MAX_STEPS, NAME_RE, WINDOW_NAME_RE, Section, auto_runs,
-                                    check_sections, check_unique, declared_numbers, experiment_header, level_and_baseline)
 from tracklab.config import factories
 from tracklab.config.factories import is_factory
+from tracklab.config.fields import (
+    MAX_RUN_STEPS,
+    MAX_RUNS,
+    MAX_STEPS,
+    NAME_RE,
+    WINDOW_NAME_RE,
+    Section,
+    auto_runs,
+    check_sections,
+    check_unique,
+    declared_numbers,
+    experiment_header,
+    level_and_baseline,
+)
 from tracklab.config.studies import parse_studies
 from tracklab.errors import ConfigError, first_line
-from tracklab.worlds.tracking.experiment import Experiment, FilterConfig
-from tracklab.filters.fusion import view_of as _view
 from tracklab.filters.context import filter_context
 from tracklab.filters.core import Filter
 from tracklab.filters.factory import declared
+from tracklab.filters.fusion import view_of as _view
 from tracklab.filters.kind import Entry
 from tracklab.filters.registry import KINDS
 from tracklab.montecarlo.statistics import REPORT_WINDOW
-from tracklab.scenarios import SCENARIOS, Generated, MountFrame, Scenario, ScenarioContext
-from tracklab.sensors import SENSOR_KINDS, SENSOR_SIGMAS, CustomSensor, Sensor, SensorSuite
+from tracklab.scenarios import (
+    SCENARIOS,
+    Generated,
+    MountFrame,
+    Scenario,
+    ScenarioContext,
+)
+from tracklab.sensors import (
+    SENSOR_KINDS,
+    SENSOR_SIGMAS,
+    CustomSensor,
+    Sensor,
+    SensorSuite,
+)
 from tracklab.toml_fields import sigma_list as _sigma_list
+from tracklab.worlds.tracking.experiment import Experiment, FilterConfig
 from tracklab.worlds.tracking.lanes import FilterSpec
 
 SENSOR_DIM = {"polar": 2, "spherical": 3, "angles": 3, "mount": 3}  # dimension of the truth they observe
@@ -147,8 +172,6 @@ def _own_scenario(f, sc, kind, dt, steps, dim, folders=()):
 
 def _generated(f, kind, fn, dt, steps):
     """A truth function as a ``Generated`` scenario, its dimension read from its output's shape."""
-    import jax
-
     try:
         with jax.enable_x64(True):
             shape = jax.eval_shape(fn, jax.random.key(0)).shape

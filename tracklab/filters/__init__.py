@@ -39,7 +39,8 @@ from tracklab.filters.kalman import (
 from tracklab.filters.dual_ekf import model_dekf
 from tracklab.filters.error_space import model_error_space
 from tracklab.filters.imm import imm_params, model_imm
-from tracklab.filters.kind import FilterKind, Param
+from tracklab.filters.kind import FilterKind
+from tracklab.parameters import Param
 from tracklab.filters.polar import model_polar_kf
 from tracklab.filters.registry import KINDS
 from tracklab.filters.strong_tracking import model_stf, strong_tracking

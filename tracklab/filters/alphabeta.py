@@ -31,7 +31,8 @@ import numpy as np
 
 from tracklab.filters.blocks import Gaussian, joseph_covariance, predict
 from tracklab.filters.core import Filter, Out, masked_meas, select
-from tracklab.filters.kind import NOISE, Constraint, Entry, FilterKind, Param, noise, positive, stable_gains, write_value
+from tracklab.filters.kind import NOISE, Entry, FilterKind, noise
+from tracklab.parameters import Constraint, Param, positive, stable_gains, write_value
 from tracklab.linalg import mm
 from tracklab.sensors import CONVERSIONS
 

@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab.models import Kinematic, cv
+from tracklab.sensors import SensorSuite
 
 
 class SensorModel(NamedTuple):
@@ -75,7 +76,7 @@ class FilterContext(NamedTuple):
 
 def sensor_model(sensor) -> SensorModel:
     """A sensor (built-in or custom) as a filter factory sees it."""
-    R = np.asarray(sensor.R, float) if hasattr(sensor, "R") else np.diag(np.square(np.asarray(sensor.sigma, float)))
+    R = np.asarray(sensor.R, float)
     return SensorModel(sensor.name, sensor.h, R, tuple(sensor.angle_mask), float(sensor.period or sensor.dt),
                        float(sensor.offset), float(sensor.p_detect))
 
@@ -83,7 +84,7 @@ def sensor_model(sensor) -> SensorModel:
 def filter_context(scenario, seen, accel_sigma: float | None = None) -> FilterContext:
     """The context of a filter that sees the sensors ``seen`` (a sensor, a suite or a sequence) of
     ``scenario``; ``accel_sigma`` by default the scenario's (0 when its truth has none)."""
-    sensors = getattr(seen, "sensors", seen)
+    sensors = seen.sensors if isinstance(seen, SensorSuite) else seen
     if accel_sigma is None:
         accel_sigma = float(np.asarray(scenario.accel_sigma))
     return FilterContext(float(scenario.dt), int(scenario.steps), int(scenario.dim), cv(scenario.dim, scenario.dt),

@@ -44,8 +44,8 @@ import numpy as np
 
 from tracklab.filters.blocks import Gaussian, innovation_update, predict
 from tracklab.filters.core import Filter, Out, masked_meas
-from tracklab.filters.kind import (MEASUREMENT_NOISE, PROCESS_NOISE, Entry, FilterKind, Param, free, noise, positive,
-                                   unit_interval)
+from tracklab.filters.kind import MEASUREMENT_NOISE, PROCESS_NOISE, Entry, FilterKind, noise
+from tracklab.parameters import Param, free, positive, unit_interval
 from tracklab.linalg import mm
 
 

@@ -49,7 +49,8 @@ import numpy as np
 
 from tracklab.filters.blocks import Gaussian, predict, update
 from tracklab.filters.core import Filter, Out
-from tracklab.filters.kind import NOISE, Entry, FilterKind, Param, noise, positive
+from tracklab.filters.kind import NOISE, Entry, FilterKind, noise
+from tracklab.parameters import Param, positive
 from tracklab.linalg import mm
 
 

@@ -35,7 +35,8 @@ import numpy as np
 
 from tracklab.filters.blocks import Gaussian, ekf_update, predict
 from tracklab.filters.core import Filter, Out, masked_meas
-from tracklab.filters.kind import (ANY_SENSOR, MEASUREMENT_NOISE, Entry, FilterKind, Param, positive, probabilities)
+from tracklab.filters.kind import ANY_SENSOR, MEASUREMENT_NOISE, Entry, FilterKind
+from tracklab.parameters import Param, positive, probabilities
 from tracklab.linalg import jacobian, mahalanobis2_logdet, symmetrise
 from tracklab.toml_fields import MAX_MAGNITUDE
 

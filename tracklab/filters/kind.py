@@ -31,8 +31,7 @@ import numpy as np
 
 from tracklab.errors import ConfigError
 from tracklab.models import MODELS
-from tracklab.parameters import (Constraint, Param, bounded, constraint_of, free, interval, nonnegative, positive,
-                                 probabilities, stable_gains, unit_interval, write_value)
+from tracklab.parameters import Param, positive
 from tracklab.toml_fields import sigma_list
 
 # ------------------------------------------------------------------ writing tuned values back

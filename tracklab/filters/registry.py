@@ -7,7 +7,8 @@ read the kinds here, in this order.
 
 from __future__ import annotations
 
-from tracklab.filters.kind import FilterKind, Param
+from tracklab.filters.kind import FilterKind
+from tracklab.parameters import Param
 
 # one line per module, in the order `tracklab list` shows
 from tracklab.filters.kalman import KF, EKF, CMKF, SEQUENTIAL_EKF

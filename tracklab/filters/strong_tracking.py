@@ -28,7 +28,8 @@ import jax.numpy as jnp
 
 from tracklab.filters.blocks import Gaussian, innovation, innovation_update
 from tracklab.filters.core import Filter, Out, masked_meas
-from tracklab.filters.kind import ANY_SENSOR, NOISE, Entry, FilterKind, Param, noise, positive, unit_interval
+from tracklab.filters.kind import ANY_SENSOR, NOISE, Entry, FilterKind, noise
+from tracklab.parameters import Param, positive, unit_interval
 from tracklab.linalg import jacobian, mm, symmetrise
 
 

@@ -21,7 +21,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab.filters.blocks import Gaussian, Update, innovation, kalman_filter
-from tracklab.filters.kind import ANY_SENSOR, NOISE, Entry, FilterKind, Param, interval, noise, nonnegative
+from tracklab.filters.kind import ANY_SENSOR, NOISE, Entry, FilterKind, noise
+from tracklab.parameters import Param, interval, nonnegative
 from tracklab.linalg import cholesky, mm, spd_inverse, symmetrise
 
 

@@ -5,12 +5,24 @@ and range with their bands, NEES with its χ² band, the runs' pointing-error di
 from __future__ import annotations
 
 from pathlib import Path
+
 import numpy as np
+
 from tracklab.intervals import with_half_width
 from tracklab.report.document import write_tables
-from tracklab.report.tables import diverged_cell, fmt, md_cell, paired_cell, auto_note
-from tracklab.report.figures import arr, band, cdf_panel, coincide_note, legend, panel_grid, plain_log, pyplot, styles, summary_value
-
+from tracklab.report.figures import (
+    arr,
+    band,
+    cdf_panel,
+    coincide_note,
+    legend,
+    panel_grid,
+    plain_log,
+    pyplot,
+    styles,
+    summary_value,
+)
+from tracklab.report.tables import auto_note, diverged_cell, fmt, md_cell, paired_cell
 
 SUMMARY_TABLES = [  # (key, title, format)
     ("pointing", "true pointing error RMS (mrad)", "{:.3f}"),
@@ -72,8 +84,6 @@ def write_airborne_results(doc, folder: Path, figures=True):
 
     write_tables(folder, doc, airborne_tables(doc))
     if figures:
-        from tracklab.report.airborne import plot_airborne
-
         plot_airborne(doc, folder)
     return doc
 

@@ -6,8 +6,13 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+
 import numpy as np
+
+from tracklab import __version__
+from tracklab.output import HEADER_KEY, atomic_folder, check_results_folder
 from tracklab.report.tables import csv_table, markdown_table, stored
+from tracklab.runtime import writes
 
 
 def _jsonable(obj):
@@ -41,9 +46,6 @@ def run_into_folder(exp, out, runs, max_memory, simulate, write):
     temporary folder swapped in whole; returns what ``write`` returns (the statistics). In a run of
     several processes every one checks and simulates, and process 0 alone writes (the others
     return None)."""
-    from tracklab.output import atomic_folder, check_results_folder
-    from tracklab.runtime import writes
-
     file = exp.path if exp.path is not None else "tracklab.experiment"  # what a refusal names
     out = check_results_folder(results_path(exp, out), file)
     exp.check_memory(runs, max_memory)
@@ -56,9 +58,6 @@ def run_into_folder(exp, out, runs, max_memory, simulate, write):
 def write_json(path: Path, doc):
     """Compact JSON, NaN and infinities as null, floats to 10 significant digits; tracklab's
     header (its version) first, which marks the folder as tracklab's (``tracklab.output``)."""
-    from tracklab import __version__
-    from tracklab.output import HEADER_KEY
-
     doc = {HEADER_KEY: __version__} | dict(doc)
     path.write_text(json.dumps(_jsonable(doc), separators=(",", ":"), allow_nan=False) + "\n")
 

@@ -4,10 +4,20 @@ maximum tracking errors)."""
 from __future__ import annotations
 
 from pathlib import Path
+
 import numpy as np
+
 from tracklab.intervals import with_half_width
 from tracklab.report.document import write_tables
-from tracklab.report.figures import arr, cdf_panel, coincide_note, legend, panel_grid, pyplot, styles
+from tracklab.report.figures import (
+    arr,
+    cdf_panel,
+    coincide_note,
+    legend,
+    panel_grid,
+    pyplot,
+    styles,
+)
 
 
 def write_servo_results(doc, folder: Path, figures=True):
@@ -15,8 +25,6 @@ def write_servo_results(doc, folder: Path, figures=True):
 
     write_tables(folder, doc)
     if figures:
-        from tracklab.report.servo import plot_servo
-
         plot_servo(doc, folder)
     return doc
 

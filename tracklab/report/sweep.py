@@ -6,11 +6,14 @@ from __future__ import annotations
 import csv
 import io
 from pathlib import Path
+
 import numpy as np
-from tracklab.output import atomic_folder
+
 from tracklab.intervals import with_half_width
-from tracklab.report.tables import md_cell
+from tracklab.output import atomic_folder
 from tracklab.report.document import write_json
+from tracklab.report.figures import pyplot
+from tracklab.report.tables import md_cell
 
 
 def write_sweep(exp, doc, out, figures=True):
@@ -121,8 +124,6 @@ def _plot(doc, names, labels, folder):
     sweeps as curves with each point's confidence interval, 2-D sweeps as heatmaps with each
     cell centred on its grid values. The NEES's consistent value (its degrees of freedom) is a
     line on the curves and a white contour on the heatmaps."""
-    from tracklab.report.figures import pyplot
-
     plt = pyplot()
 
     axes_vals = [np.asarray(doc["axes"][n]) for n in names]

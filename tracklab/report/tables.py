@@ -6,10 +6,11 @@ from __future__ import annotations
 import csv
 import io
 import math
+
 import numpy as np
+
 from tracklab.intervals import format_value, missing, with_half_width
 from tracklab.montecarlo.statistics import AXES
-
 
 # (summary key, title, format); {p}/{v} are the position/velocity units, {a} an axis name
 COLUMNS = [

@@ -4,17 +4,18 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+
 import numpy as np
+
+from tracklab.report.document import write_json
+from tracklab.report.figures import pyplot
+from tracklab.report.tables import md_cell
 
 
 def tune_report(exp, res, folder: Path, *, steps, lr, tuned_file, log_lines, figures=True):
     """A tuning's results folder: tune.json (settings, each filter's parameters and held-out loss
     before and after, every step's loss per filter), table.md, tune.log and, with ``figures``,
     loss.png (each filter's loss per step in a panel of its own, the held-out values marked)."""
-    from tracklab.report.figures import pyplot
-    from tracklab.report.tables import md_cell
-    from tracklab.report.document import write_json
-
     labels = list(res.params)
     lanes = list(res.eval_initial)  # whose losses: the filters (a closed loop: its trackers' or cases')
     doc = {

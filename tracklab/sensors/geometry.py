@@ -134,6 +134,11 @@ class Sensor:
         return len(self.sigma)
 
     @property
+    def R(self):
+        """Its true noise covariance: the variances of its components (uncorrelated)."""
+        return jnp.diag(jnp.square(jnp.asarray(self.sigma)))
+
+    @property
     def names(self) -> tuple[str, ...]:
         return _NAMES.get(self.kind) or ("x", "y", "z")[: self.dim]
 

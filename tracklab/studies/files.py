@@ -4,10 +4,34 @@ sweeps (``tracklab.config.studies`` reads the ``[[study]]`` tables)."""
 from __future__ import annotations
 
 import math
+import sys
 from pathlib import Path
+
 import numpy as np
+
+from tracklab.config import load_experiment
+from tracklab.config.paths import parse_grid
+from tracklab.config.writeback import tuned_text
 from tracklab.errors import ConfigError
+from tracklab.memory import check
+from tracklab.output import (
+    atomic_folder,
+    check_results_folder,
+    check_tuned_file,
+    write_text_atomically,
+)
+from tracklab.report.sweep import runs_text, write_sweep
 from tracklab.report.tuning import tune_report
+from tracklab.runtime import writes
+from tracklab.studies.sweep import sweep
+from tracklab.studies.tune import (
+    forward_mode,
+    memory_bytes,
+    selection,
+    tune,
+    tuned_numbers,
+    unwritable,
+)
 
 
 def check_tune(exp, names, labels, out_toml, runs_per_step=None, max_memory=None, field="--params", folder=None,
@@ -15,10 +39,6 @@ def check_tune(exp, names, labels, out_toml, runs_per_step=None, max_memory=None
     """Everything a tuning needs, checked before it compiles (ConfigError in one line): a selected
     filter with the parameters, tuned values that can be written back, the output file and
     results folder, memory."""
-    from tracklab.memory import check
-    from tracklab.output import check_results_folder, check_tuned_file
-    from tracklab.studies.tune import forward_mode, memory_bytes, selection, tuned_numbers, unwritable
-
     chosen = selection(exp, names, labels)
     if not chosen:
         bare = [label for label, declared in exp.declared().items() if not declared]
@@ -42,15 +62,6 @@ def run_tune(exp, names, *, steps, lr, loss, runs_per_step, labels, out_toml: Pa
     """Tune, log progress lines, write the results folder (``tune_report``; its loss.png only
     with ``figures``) and the tuned experiment file, each atomically (process 0 alone, in a run of
     several); return the TuneResult."""
-    import sys
-
-    from tracklab.runtime import writes
-
-    from tracklab.config import load_experiment
-    from tracklab.config.writeback import tuned_text
-    from tracklab.output import atomic_folder, check_tuned_file, write_text_atomically
-    from tracklab.studies.tune import tune
-
     written_to = out_toml  # as given (the log names it so, not as this machine resolves it)
     out_toml = check_tuned_file(out_toml, exp.path)
     lines = []
@@ -100,11 +111,6 @@ def run_tune(exp, names, *, steps, lr, loss, runs_per_step, labels, out_toml: Pa
 def run_study(exp, study, results_dir, quick=False, log=print, figures=True):
     """Rebuild one study under ``results_dir``; ``quick``: a few steps and runs, as a smoke check;
     ``figures``: with its PNG figures."""
-    from tracklab.config import load_experiment
-    from tracklab.config.paths import parse_grid
-    from tracklab.report.sweep import runs_text, write_sweep
-    from tracklab.studies.sweep import sweep
-
     base = Path(results_dir) / study.out
     if study.kind == "tune":
         tuned = base.with_name(base.name + "_tuned.toml")

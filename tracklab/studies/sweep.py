@@ -26,11 +26,14 @@ from __future__ import annotations
 import copy
 import itertools
 import time
+
 import jax
 import numpy as np
+
 from tracklab.config import parse_experiment
 from tracklab.config.paths import Axis, set_value, table_of
 from tracklab.errors import ConfigError
+from tracklab.memory import check
 from tracklab.montecarlo import runner
 
 
@@ -72,8 +75,6 @@ def check_sweep(exp, axes: list[Axis], runs=None, limit=None):
     of a parameter no filter has, a PATH that names no number, ``--runs`` beside an axis of the
     runs, an estimator trained before its run, or a grid too large to hold. Each grid point is
     checked as a file when the sweep reads it (``points``)."""
-    from tracklab.memory import check
-
     names = [a.name for a in axes]
     if len(set(names)) != len(names):
         raise ConfigError(exp.path, "--grid", " ".join(names), "each parameter may appear once")

@@ -37,8 +37,10 @@ against 50 s to compile); its cost grows with every number tuned, reverse mode's
 
 from __future__ import annotations
 
+import copy
 import functools
 import math
+import time
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -143,8 +145,6 @@ def unwritable(exp: Experiment, chosen: dict) -> str | None:
     """Why the tuned values of ``chosen`` could not be written back into the experiment file (None
     if they can): each written where its declaration says, on a copy of the file's tables, before
     tuning starts."""
-    import copy
-
     section, labels = exp.tables()
     declared, values = exp.declared(), exp.values(exp.params())
     for label, table in zip(labels, exp.raw.get(section, [])):
@@ -287,8 +287,6 @@ def tune(exp, names, *, steps=200, lr=0.05, loss=None, runs_per_step=None, eval_
 
 
 def _tune(exp, names, *, steps, lr, loss, runs_per_step, eval_runs, seed, labels, every, progress) -> TuneResult:
-    import time
-
     t0 = time.perf_counter()
     obj = objective(exp, names, loss, labels)
     B = int(runs_per_step or min(exp.runs, 256))

@@ -26,10 +26,26 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab.worlds.airborne.boresight import EPS, OMEGA, ModelParams, antenna_motion, antenna_rate_at, drift, observation_matrix, process_noise
-from tracklab.worlds.airborne.tracker import FILTERING, Setting, Timing, Tracker, TrackerKind, prior_sd
 from tracklab.filters.blocks import Gaussian, innovation_update
 from tracklab.linalg import mm, solve
+from tracklab.worlds.airborne.boresight import (
+    EPS,
+    OMEGA,
+    ModelParams,
+    antenna_motion,
+    antenna_rate_at,
+    drift,
+    observation_matrix,
+    process_noise,
+)
+from tracklab.worlds.airborne.tracker import (
+    FILTERING,
+    Setting,
+    Timing,
+    Tracker,
+    TrackerKind,
+    prior_sd,
+)
 
 
 class CDParams(NamedTuple):

@@ -36,9 +36,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab.worlds.airborne.tracker import Setting, Timing, Tracker, TrackerKind, prior_sd
-from tracklab.linalg import mm
 from tracklab.filters.alphabeta import kalata_alpha_beta, kalata_alpha_beta_gamma
+from tracklab.linalg import mm
+from tracklab.worlds.airborne.tracker import (
+    Setting,
+    Timing,
+    Tracker,
+    TrackerKind,
+    prior_sd,
+)
 from tracklab.worlds.servo.transfer import TransferFunction, discretise
 
 

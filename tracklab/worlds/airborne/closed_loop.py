@@ -32,10 +32,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab.worlds.airborne.boresight import antenna_motion, los_frame, los_state, rotate
+from tracklab.linalg import mahalanobis2, mm
+from tracklab.worlds.airborne.boresight import (
+    antenna_motion,
+    los_frame,
+    los_state,
+    rotate,
+)
 from tracklab.worlds.airborne.engagement import Engagement, singer_block
 from tracklab.worlds.airborne.tracker import Timing, Tracker
-from tracklab.linalg import mahalanobis2, mm
 
 MRAD = 1e-3  # rad: the unit of the reported angles
 SAMPLE_QUANTITIES = ("pointing", "pointing_estimate", "los_rate", "range", "range_rate", "nees")

@@ -27,11 +27,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.linalg import block_diag
 
+from tracklab.filters.blocks import Gaussian, innovation_update
+from tracklab.linalg import expm, mm, symmetrise
 from tracklab.worlds.airborne.boresight import EPS, OMEGA, antenna_motion
 from tracklab.worlds.airborne.cd_ekf import command, filter_numbers
 from tracklab.worlds.airborne.tracker import FILTERING, Timing, Tracker, TrackerKind
-from tracklab.filters.blocks import Gaussian, innovation_update
-from tracklab.linalg import expm, mm, symmetrise
 
 
 class DecoupledState(NamedTuple):

@@ -15,7 +15,11 @@ import numpy as np
 from tracklab.intervals import precision_reached
 from tracklab.memory import check
 from tracklab.montecarlo import runner
-from tracklab.montecarlo.statistics import average_chi2_interval, lane_intervals, rms_half_width
+from tracklab.montecarlo.statistics import (
+    average_chi2_interval,
+    lane_intervals,
+    rms_half_width,
+)
 from tracklab.report.airborne import write_airborne_results
 from tracklab.worlds import protocol
 from tracklab.worlds.airborne import world as airborne_world

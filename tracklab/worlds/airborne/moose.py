@@ -31,11 +31,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab.worlds.airborne.boresight import EPS, observation_matrix
-from tracklab.parameters import Constraint, Param, bounded
-from tracklab.worlds.airborne.cd_ekf import CDParams, command, filter_numbers, predict_period
-from tracklab.worlds.airborne.tracker import FILTERING, Timing, Tracker, TrackerKind
 from tracklab.linalg import mm, spd_inverse, symmetrise
+from tracklab.parameters import Constraint, Param, bounded
+from tracklab.worlds.airborne.boresight import EPS, observation_matrix
+from tracklab.worlds.airborne.cd_ekf import (
+    CDParams,
+    command,
+    filter_numbers,
+    predict_period,
+)
+from tracklab.worlds.airborne.tracker import FILTERING, Timing, Tracker, TrackerKind
 
 
 class MooseParams(NamedTuple):

@@ -27,10 +27,10 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from tracklab.montecarlo import runner
 from tracklab.worlds.airborne.closed_loop import LoopConfig, engage, run_samples, sums
 from tracklab.worlds.airborne.registry import TRACKERS
 from tracklab.worlds.airborne.tracker import Timing
-from tracklab.montecarlo import runner
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -19,16 +20,19 @@ from tracklab.intervals import precision_reached
 from tracklab.memory import check
 from tracklab.montecarlo import runner
 from tracklab.montecarlo.statistics import lane_intervals
+from tracklab.report.servo import write_servo_results
 from tracklab.worlds import protocol
 from tracklab.worlds.servo import world as servo_world
 from tracklab.worlds.servo.estimators import Estimator, Setting
 from tracklab.worlds.servo.registry import ESTIMATORS
 from tracklab.worlds.servo.training import train_dekf
-from tracklab.worlds.servo.world import SAMPLES, CaseSpec, ServoParams, ServoStructure, target_function
-
-from tracklab.report.servo import write_servo_results
-
-
+from tracklab.worlds.servo.world import (
+    SAMPLES,
+    CaseSpec,
+    ServoParams,
+    ServoStructure,
+    target_function,
+)
 
 TARGET_KINDS = {  # [target] kind -> its fields (paper 003: the sine test and the dynamic-target rig)
     "sine": "amplitude (deg), omega (rad/s)",

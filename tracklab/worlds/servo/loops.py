@@ -46,7 +46,11 @@ import numpy as np
 
 from tracklab.filters.core import Meas
 from tracklab.worlds.servo.estimators import Estimator
-from tracklab.worlds.servo.transfer import TransferFunction, discretise, discretise_state_space
+from tracklab.worlds.servo.transfer import (
+    TransferFunction,
+    discretise,
+    discretise_state_space,
+)
 
 G_S = TransferFunction.lead_lag(0.763, (), (0.663, 0.008))
 G_VC = TransferFunction.lead_lag(3200.0, (0.16, 0.008), (8.8, 0.0025))

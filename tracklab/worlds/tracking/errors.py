@@ -19,8 +19,8 @@ import jax.extend
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab.montecarlo.statistics import REPORT_WINDOW
 from tracklab.linalg import mahalanobis2, mahalanobis2_logdet, norm, sum_elements
+from tracklab.montecarlo.statistics import REPORT_WINDOW
 
 
 class RunErrors(NamedTuple):

@@ -12,9 +12,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 import jax.numpy as jnp
+import numpy as np
 
 from tracklab import __version__
 from tracklab.filters.kind import WriteBack

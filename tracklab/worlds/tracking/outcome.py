@@ -11,14 +11,20 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from tracklab.intervals import LEVEL, precision_reached
-from tracklab.montecarlo.statistics import REPORT_WINDOW
 from tracklab.montecarlo import runner
-from tracklab.sensors import SensorSuite
 from tracklab.montecarlo.pcrlb import pcrlb64
-from tracklab.worlds.tracking.scan import (TrackingParams, TrackingStructure, default_chunk, windows_of, with_report_window,
-                                              world)
+from tracklab.montecarlo.statistics import REPORT_WINDOW
+from tracklab.sensors import SensorSuite
 from tracklab.worlds.tracking.errors import sample_names, unpack
 from tracklab.worlds.tracking.lanes import FilterSpec
+from tracklab.worlds.tracking.scan import (
+    TrackingParams,
+    TrackingStructure,
+    default_chunk,
+    windows_of,
+    with_report_window,
+    world,
+)
 
 
 @dataclass

@@ -22,16 +22,24 @@ import jax.extend
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab.montecarlo.statistics import REPORT_WINDOW
-from tracklab.models import cv_index, interleaved
-from tracklab.worlds.tracking.scan import window_mask, with_report_window
-from tracklab.worlds.tracking.errors import (MAXIMA, SUMS, accumulated_lengths, lane_sums, named, run_errors, run_samples,
-                                               sample_names)
-from tracklab.worlds.tracking.outcome import MonteCarloResult
-from tracklab.montecarlo.samples import RunSamples
 from tracklab.filters.core import Out
+from tracklab.models import cv_index, interleaved
+from tracklab.montecarlo.samples import RunSamples
+from tracklab.montecarlo.statistics import REPORT_WINDOW
 from tracklab.output import atomic_folder, check_results_folder
+from tracklab.worlds.tracking.errors import (
+    MAXIMA,
+    SUMS,
+    accumulated_lengths,
+    lane_sums,
+    named,
+    run_errors,
+    run_samples,
+    sample_names,
+)
 from tracklab.worlds.tracking.experiment import stats_document, write_results
+from tracklab.worlds.tracking.outcome import MonteCarloResult
+from tracklab.worlds.tracking.scan import window_mask, with_report_window
 
 
 def recorded_sums(out, truth, layout, windows: dict | None = None) -> dict:

@@ -33,11 +33,18 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab import random
-from tracklab.montecarlo.statistics import REPORT_WINDOW
 from tracklab.montecarlo import runner
+from tracklab.montecarlo.statistics import REPORT_WINDOW
 from tracklab.sensors import SensorSuite
-from tracklab.worlds.tracking.errors import (RunErrors, accumulated_lengths, errors_of, lane_sums, pick, run_samples,
-                                               with_errors)
+from tracklab.worlds.tracking.errors import (
+    RunErrors,
+    accumulated_lengths,
+    errors_of,
+    lane_sums,
+    pick,
+    run_samples,
+    with_errors,
+)
 from tracklab.worlds.tracking.lanes import lane, run_dependence, view_pattern
 
 
