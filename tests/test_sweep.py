@@ -99,3 +99,52 @@ def test_a_curve_that_barely_moves_is_drawn_flat():
     assert flat.get_yscale() == "linear" and lo <= 2.6126 * 0.9 and hi >= 2.6126 * 1.1
     assert steep.get_yscale() == "log"
     plt.close(fig)
+
+
+HONEST = """
+[experiment]
+name = "honest"
+runs = 24
+dt = 0.5
+steps = 20
+
+[scenario]
+kind = "crossing"
+
+[sensor]
+kind = "polar"
+sigma_r = 100.0
+sigma_angle = 0.003
+
+[[filter]]
+kind = "ekf"
+label = "EKF"
+"""
+
+
+@pytest.mark.parametrize("grid", ["experiment.runs=8:24:2", "experiment.seed=0:1:2", "report.level=0.5:0.99:2",
+                                  "experiment.dt=0.25:0.5:2", "sensor.p_detect=0.5:1:2", "sensor.period=0.5:1:2"])
+def test_every_axis_means_what_it_says(tmp_path, grid):
+    """Each grid point's statistics are those of a plain run of the file with that value: the run
+    count, the seed and the level too (not the file's, relabelled), and a value that changes the
+    program (dt, a sensor's detection or report pattern) runs a program of its own."""
+    import copy
+
+    from tracklab.config import parse_experiment
+    from tracklab.config.paths import set_value
+
+    path = tmp_path / "honest.toml"
+    path.write_text(textwrap.dedent(HONEST))
+    exp = load_experiment(path)
+    axis = parse_grid(grid)
+    doc = sweep(exp, [axis])
+    points = [p["stats"]["filters"]["EKF"] for p in doc["points"]]
+    for value, got in zip(axis.values, points):
+        raw = copy.deepcopy(exp.raw)
+        set_value(raw, axis.path, value)
+        want = parse_experiment(path, raw).simulate()["filters"]["EKF"]
+        for part in ("summary", "half_width"):  # the numbers and their intervals (at the point's level)
+            for k, v in want[part].items():
+                if isinstance(v, (int, float)):
+                    np.testing.assert_allclose(got[part][k], v, rtol=1e-9, atol=1e-12, err_msg=f"{grid} at {value}: {k}")
+    assert (points[0]["summary"], points[0]["half_width"]) != (points[1]["summary"], points[1]["half_width"])

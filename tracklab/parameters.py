@@ -192,8 +192,8 @@ class Param:
         d = self.default
         if d is None:
             return f"{name}{unit}"
-        if callable(d):
-            return f"{name}{unit} = from the context"
+        if callable(d):  # a default of the context: what the doc says of it
+            return f"{name}{unit} ({self.doc})"
         shown = f"[{', '.join(f'{v:g}' for v in d)}]" if isinstance(d, tuple) else f"{d:g}"
         return f"{name}{unit} = {shown}"
 

@@ -16,7 +16,7 @@ import dataclasses
 import numpy as np
 
 from tracklab.config.fields import MAX_RUN_STEPS, MAX_RUNS, NAME_RE, check_unique
-from tracklab.config.tracking import _parse_filter, _pred_windows
+from tracklab.config.tracking import parse_filter, pred_windows_of
 from tracklab.errors import ConfigError
 from tracklab.filters.core import Filter
 from tracklab.scenarios import Scenario
@@ -145,7 +145,7 @@ def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: in
     for i, fc in enumerate(filters or [], start=1):
         where = f"filters[{i - 1}]"
         if isinstance(fc, dict):
-            fc = _parse_filter(WHERE, i, dict(fc), suite, dim, dt, default_q, scenario)
+            fc = parse_filter(WHERE, i, dict(fc), suite, dim, dt, default_q, scenario)
         elif isinstance(fc, Filter):
             raise ConfigError(WHERE, where, "Filter", "give it a label: tracklab.FilterSpec(label, filter)")
         elif isinstance(fc, FilterSpec):
@@ -171,7 +171,7 @@ def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: in
     w = tuple(window) if window is not None else (1, steps)
     if len(w) != 2 or not all(isinstance(v, (int, np.integer)) for v in w) or not 1 <= w[0] <= w[1] <= steps:
         raise ConfigError(WHERE, "window", window, f"must be (first, last) steps with 1 <= first <= last <= {steps}")
-    pred_windows = _pred_windows(WHERE, dict(windows or {}), w, steps, dt)
+    pred_windows = pred_windows_of(WHERE, dict(windows or {}), w, steps, dt)
     raw = {
         "experiment": {"name": name, "runs": int(runs), "seed": int(seed), "dt": dt, "steps": steps,
                        "precision": precision, "built": "python"},

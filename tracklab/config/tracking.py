@@ -34,7 +34,7 @@ from tracklab.errors import ConfigError, first_line
 from tracklab.filters.context import filter_context
 from tracklab.filters.core import Filter
 from tracklab.filters.factory import declared
-from tracklab.filters.fusion import view_of as _view
+from tracklab.filters.fusion import view_of
 from tracklab.filters.kind import Entry
 from tracklab.filters.registry import KINDS
 from tracklab.montecarlo.statistics import REPORT_WINDOW
@@ -52,7 +52,7 @@ from tracklab.sensors import (
     Sensor,
     SensorSuite,
 )
-from tracklab.toml_fields import sigma_list as _sigma_list
+from tracklab.toml_fields import sigma_list
 from tracklab.worlds.tracking.experiment import Experiment, FilterConfig
 from tracklab.worlds.tracking.lanes import FilterSpec
 
@@ -104,7 +104,7 @@ def _build_sensors(f, parsed, dim, dt, steps, folders=()):
             raise ConfigError(f, f"{where}.kind", kind, f"observes {SENSOR_DIM[kind]}-D positions but the scenario is {dim}-D{hint}")
         p_detect, period, offset = _timing(f, where, sn, dt)
         if kind == "cartesian":
-            sigma = _sigma_list(f, f"{where}.sigma", sn.get("sigma"), dim)
+            sigma = sigma_list(f, f"{where}.sigma", sn.get("sigma"), dim)
         else:
             sigma = tuple(sn.number(k, required=True, positive=True) for k in SENSOR_SIGMAS[kind])
         sn.check_unknown()
@@ -264,7 +264,7 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
     filters, labels, trimmed = [], set(), set()
     default_q = scenario.accel_sigma
     for i, table in enumerate(flist, start=1):
-        fc = _parse_filter(f, i, table, suite, dim, dt, default_q, scenario, folders)
+        fc = parse_filter(f, i, table, suite, dim, dt, default_q, scenario, folders)
         check_unique(f, f"filter[{i}].label", fc.label, trimmed, "filters")
         labels.add(fc.label)
         filters.append(fc)
@@ -278,7 +278,7 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
         or not (1 <= w[0] <= w[1] <= steps)
     ):
         raise ConfigError(f, "report.window", w, f"must be [first, last] steps with 1 <= first <= last <= {steps}")
-    pred_windows = _pred_windows(f, rp.get("windows", {}), (w[0], w[1]), steps, dt)
+    pred_windows = pred_windows_of(f, rp.get("windows", {}), (w[0], w[1]), steps, dt)
     level, baseline = level_and_baseline(rp, labels)
     rp.check_unknown()
     studies = parse_studies(f, raw.get("study"), filters)
@@ -290,7 +290,7 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
     )
 
 
-def _pred_windows(f, table, window, steps, dt):
+def pred_windows_of(f, table, window, steps, dt):
     """[report.windows]: name = [t0, t1] (s, inclusive) or "rest" -> (steps,) step masks.
 
     "rest" is the report window's steps outside every other named window. The
@@ -370,7 +370,7 @@ def _own_filter(f, i, fs, spec, suite, scenario, folders=()):
     return own.with_code(scenario, suite)
 
 
-def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q, scenario=None, folders=()) -> FilterConfig:
+def parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q, scenario=None, folders=()) -> FilterConfig:
     """One [[filter]] table: its kind, label and what it sees (the sensors, a guide, a fusion), checked
     against the sensor kinds the kind accepts; then the kind's own fields (its declaration's ``read``)."""
     fs = Section(f, f"filter[{i}]", table)
@@ -397,7 +397,7 @@ def _parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q, scenario=
         ir = next(s for s in suite.subset(names).sensors if s.kind == "angles")
         if ir.p_detect < 1.0:
             raise ConfigError(f, f"filter[{i}].fusion", fusion, "registration needs every infrared report: set its p_detect = 1")
-    _, meas = _view(suite, names, fusion)
+    _, meas = view_of(suite, names, fusion)
     mkind = meas.kind
     guide_sensor = None
     if kind.guided:
