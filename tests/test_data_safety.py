@@ -393,7 +393,7 @@ def _merged(parts):
 
 
 def test_servo_case_statistics_leave_diverged_runs_out():
-    from tracklab.worlds.servo.experiment import case_summary
+    from tracklab.worlds.servo.statistics import case_summary
     from tracklab.worlds.servo.world import case_sums
 
     mx = np.array([0.1, 0.2, np.inf, 1e20, 0.05])  # deg: two healthy runs, one overflowed, one lost the target

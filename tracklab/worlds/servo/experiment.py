@@ -19,15 +19,14 @@ from tracklab.filters.core import Prior
 from tracklab.intervals import precision_reached
 from tracklab.memory import check
 from tracklab.montecarlo import runner
-from tracklab.montecarlo.statistics import lane_intervals
 from tracklab.report.servo import write_servo_results
 from tracklab.worlds import protocol
+from tracklab.worlds.servo import statistics
 from tracklab.worlds.servo import world as servo_world
 from tracklab.worlds.servo.estimators import Estimator, Setting
 from tracklab.worlds.servo.registry import ESTIMATORS
 from tracklab.worlds.servo.training import train_dekf
 from tracklab.worlds.servo.world import (
-    SAMPLES,
     CaseSpec,
     ServoParams,
     ServoStructure,
@@ -337,53 +336,11 @@ class ServoExperiment(protocol.Experiment):
              if target is not None else {})
 
     def summarise(self, structure, params, sums, out, point=None) -> dict:
-        """The cases' statistics from their sums over the runs (``point``: which grid point of the
-        runner's ``out``); with the runs' samples, each with its ``level`` interval, the percentiles
-        of the runs' maximum tracking errors and the paired differences to the baseline case."""
-        cases = {}
-        for case in structure.cases:
-            s = {k: v for k, v in sums[case.label].items() if not k.startswith("example")}
-            cases[case.label] = {"kind": case.mode, "label": case.label, "estimator": self._case(case.label).estimator,
-                                 "summary": case_summary(s, out.runs, case.estimator not in (None, "perfect")),
-                                 "series": {}}
-        samples = out.samples if point is None or out.samples is None else out.samples.point(point)
-        if samples is not None:
-            self._with_intervals(structure, cases, samples, out.runs)
-        return {"filters": cases, "level": self.level}
-
-    def _with_intervals(self, structure, cases, samples, runs):
-        stats = {key: ("mean", i) for i, key in enumerate(SAMPLES)}
-        diverged = {l: (c["summary"]["diverged"], runs) for l, c in cases.items()}
-        lanes = lane_intervals(samples, list(cases), stats, self.level, self.baseline, ("max_track_err", "random_err"),
-                               diverged, kept=[(0, "max_track_err_p{p}", "max_track_err")])
-        for case in structure.cases:
-            lane = lanes[case.label]
-            if case.estimator in (None, "perfect"):  # no rate estimate: its statistic stays missing
-                lane["summary"]["max_rate_err"] = lane["half_width"]["max_rate_err"] = float("nan")
-            cases[case.label]["summary"].update(lane.pop("summary"))
-            cases[case.label].update(lane)
+        """The cases' statistics from their sums over the runs (``statistics.summarise``)."""
+        return statistics.summarise(self, structure, sums, out, point)
 
     def write(self, doc, folder, figures=True):
         return write_servo_results(doc, folder, figures)
 
     def _case(self, label):
         return next(c for c in self.cases if c.label == label)
-
-
-def case_summary(sums: dict, runs: int, estimated: bool) -> dict:
-    """One case's statistics from its sums over the runs (deg, deg, deg/s; the rate error only
-    with an estimator). A diverged run (a non-finite value, or an error past half a turn: the
-    target lost) is counted, not averaged; with no healthy run every statistic is NaN (missing)."""
-    n = float(sums["healthy"])
-
-    def mean(key, scale=1.0):
-        return float(sums[key]) / n * scale if n > 0 else float("nan")
-
-    return {
-        "max_track_err": mean("sum_max_err", 60.0),  # arcmin
-        "max_track_err_worst": float(sums["max_max_err"]) * 60.0 if n > 0 else float("nan"),
-        "random_err": mean("sum_random_err", 3600.0),  # arcsec
-        "max_rate_err": mean("sum_rate_err") if estimated else float("nan"),
-        "diverged": int(round(float(sums["diverged"]))),
-        "runs": int(runs),
-    }
