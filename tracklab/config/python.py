@@ -19,7 +19,8 @@ from tracklab.config.fields import MAX_RUN_STEPS, MAX_RUNS, NAME_RE, check_uniqu
 from tracklab.config.tracking import parse_filter, pred_windows_of
 from tracklab.errors import ConfigError
 from tracklab.filters.core import Filter
-from tracklab.scenarios import Scenario
+from tracklab.pytree import Code
+from tracklab.scenarios import Generated, Scenario
 from tracklab.sensors import (
     SENSOR_KINDS,
     SENSOR_SIGMAS,
@@ -66,6 +67,8 @@ def _suite(sensors, scenario) -> SensorSuite:
         why = s.problem() if isinstance(s, CustomSensor) else None
         if why:
             raise ConfigError(WHERE, field, s.name, why)
+        if isinstance(s, CustomSensor):  # structure by what its h traces to
+            s = s.keyed()
         if not s.report_mask(scenario.steps).any():
             raise ConfigError(WHERE, f"{field}.offset", s.offset, "the sensor reports at no step of the run")
         out.append(s)
@@ -78,6 +81,7 @@ def _describe(obj):
         doc = {"type": type(obj).__name__}
         for fld in dataclasses.fields(obj):
             v = getattr(obj, fld.name)
+            v = v.fn if isinstance(v, Code) else v
             if callable(v):
                 v = f"{getattr(v, '__module__', '?')}:{getattr(v, '__qualname__', type(v).__name__)}"
             elif v is not None and not isinstance(v, (str, bool, int, float, tuple, list)):
@@ -131,6 +135,8 @@ def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: in
     why = scenario.problem()
     if why:
         raise ConfigError(WHERE, "scenario", type(scenario).__name__, why)
+    if isinstance(scenario, Generated):  # structure by what its truth traces to
+        scenario = scenario.keyed()
     dt, steps, dim = float(scenario.dt), int(scenario.steps), int(scenario.dim)
     if runs * steps > MAX_RUN_STEPS:
         raise ConfigError(WHERE, "runs", runs, f"runs x steps must be <= {MAX_RUN_STEPS:.0e}")

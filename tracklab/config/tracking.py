@@ -146,6 +146,8 @@ def _own_sensor(f, where, sn, kind, name, dim, dt, steps, folders=()):
     why = sensor.problem() if isinstance(sensor, CustomSensor) else None
     if why:
         raise ConfigError(f, f"{where}.kind", kind, f"the factory's sensor: {why}")
+    if isinstance(sensor, CustomSensor):
+        sensor = sensor.keyed()
     if not sensor.report_mask(steps).any():
         raise ConfigError(f, f"{where}.offset", offset, f"the sensor reports at no step: the run ends at {steps * dt:g} s")
     return sensor
@@ -167,7 +169,7 @@ def _own_scenario(f, sc, kind, dt, steps, dim, folders=()):
     why = made.problem()
     if why:
         raise ConfigError(f, "scenario.kind", kind, f"the factory's scenario: {why}")
-    return made
+    return made.keyed() if isinstance(made, Generated) else made
 
 
 def _generated(f, kind, fn, dt, steps):

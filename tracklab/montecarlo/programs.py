@@ -11,11 +11,12 @@ the compiled executable (``jax.experimental.serialize_executable``).
 
 A program is stored only when
   * all of it is known by the key: the library's own code, whose source is part of the key, and
-    filters of one's own, which the structure holds by what they trace to (their jaxprs and
-    constants: ``worlds.tracking.program_key``). The structure's text and the params' pytree
-    structure name no other Python object (a truth or sensor of one's own, a filter held by
-    identity, shows as ``<…>``: its code could change under the same name) and no elided
-    array, and every pytree node type is tracklab's, JAX's or a built-in one;
+    code of one's own (a filter, a truth, a sensor's h), which the structure and the params'
+    pytree hold by what it traces to (its jaxprs and constants: ``pytree.Code``,
+    ``worlds.tracking.lanes.program_key``). The structure's text and the params' pytree
+    structure name no other Python object (one held by identity shows as ``<…>``: its code
+    could change under the same name) and no elided array, and every pytree node type is
+    tracklab's, JAX's or a built-in one;
   * XLA compiled it in this process: one that JAX loaded from its own persistent cache
     serialises without some of its kernels' code;
   * it runs on the CPU (where the only kernels outside XLA a program calls are LAPACK's, set

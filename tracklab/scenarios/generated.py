@@ -12,14 +12,15 @@ as ``truth(key, params)`` when given. Without a linear-Gaussian model no PCRLB i
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from tracklab.errors import first_line
-from tracklab.pytree import static
+from tracklab.pytree import Code, static, traced_key
 from tracklab.scenarios.kind import Scenario
 
 
@@ -40,6 +41,17 @@ class Generated(Scenario):
 
     def linear_gaussian(self):
         return None
+
+    def keyed(self) -> "Generated":
+        """This truth held as structure by what it traces to (``pytree.Code``): read again from a file,
+        the same code is the same program."""
+        if isinstance(self.truth, Code):
+            return self
+        key = jax.ShapeDtypeStruct((), jax.random.key(0).dtype)
+        with jax.enable_x64(True):
+            params = jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(np.shape(a), jnp.result_type(a)), self.params)
+            k = traced_key([(self.truth, (key,) if self.params is None else (key, params))])
+        return replace(self, truth=Code(self.truth, k))
 
     def problem(self) -> str | None:
         """Why this truth cannot be used (None if it can): it fails, or its shape is not (steps + 1, 2·dim)."""

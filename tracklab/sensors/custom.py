@@ -6,7 +6,8 @@ the compiled program) and ``angles`` flagging the components that are angles in 
 (wrapped to (−π, π], as filters wrap their innovations). Timing and detection are those of
 every sensor (``period``, ``offset``, ``p_detect``). ``h`` must be written with
 ``jax.numpy`` (the engine differentiates it for the Fisher information and the EKFs'
-Jacobians) and is part of the structure: a new function compiles anew.
+Jacobians) and is part of the structure: read from a file, by what it traces to (``keyed``);
+otherwise by identity.
 
 Built-in filters that accept any sensor (``ekf``, ``ukf``, ``stf``, ``imm``,
 ``sequential_ekf``) see it with the diagonal of ``R`` as their default noise; a user's
@@ -15,7 +16,7 @@ own filter gets the whole ``R`` (``tracklab.filters.context``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable
 
 import jax
@@ -24,7 +25,7 @@ import numpy as np
 
 from tracklab.errors import first_line
 from tracklab.linalg import jacobian
-from tracklab.pytree import static
+from tracklab.pytree import Code, static, traced_key
 from tracklab.sensors.geometry import measure_whole, report_mask, reported, sensor_draws
 
 
@@ -53,6 +54,15 @@ class CustomSensor:
     @property
     def m(self) -> int:
         return int(np.shape(self.R)[-1])
+
+    def keyed(self) -> "CustomSensor":
+        """This sensor with ``h`` held as structure by what it traces to (``pytree.Code``): read again
+        from a file, the same code is the same program."""
+        if isinstance(self.h_fn, Code):
+            return self
+        with jax.enable_x64(True):
+            k = traced_key([(self.h_fn, (jax.ShapeDtypeStruct((self.dim,), jnp.float64),))])
+        return replace(self, h_fn=Code(self.h_fn, k))
 
     @property
     def names(self) -> tuple[str, ...]:

@@ -12,8 +12,6 @@ then batches without running the filter's Python again).
 
 from __future__ import annotations
 
-import hashlib
-import re
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Mapping, NamedTuple
 
@@ -26,7 +24,7 @@ from tracklab.filters import build
 from tracklab.filters.core import Filter, Meas, Prior, trace_problem
 from tracklab.filters.fusion import view_of
 from tracklab.models import MODELS, cv, cv_index, interleaved
-from tracklab.pytree import like
+from tracklab.pytree import like, traced_key
 from tracklab.worlds.tracking.errors import error_inputs
 
 
@@ -134,37 +132,24 @@ class FilterSpec:
         return trace_problem(flt, layout.n, seen.m)
 
 def program_key(flt: Filter, n: int, m: int) -> str | None:
-    """What a filter compiles to, as a digest: its ``init``, ``step`` and ``coast`` traced (float64)
-    with a state of ``n`` and measurements of ``m`` components, each measurement with and without
-    its report pattern — their jaxprs and every constant they close over — and the params'
-    pytree. Filters with the same key compile to the same program whatever their params'
-    values. None when it calls back into Python (nothing to identify it by but its identity)."""
+    """What a filter compiles to, as a digest (``pytree.traced_key``): its ``init``, ``step`` and
+    ``coast`` traced (float64) with a state of ``n`` and measurements of ``m`` components, each
+    measurement with and without its report pattern, and the params' pytree. Filters with the same
+    key compile to the same program whatever their params' values; None when one calls back into
+    Python."""
     f64 = lambda *shape: jax.ShapeDtypeStruct(shape, jnp.float64)  # noqa: E731
-    h = hashlib.sha256()
-
-    def add(closed):
-        text = re.sub(r" at 0x[0-9a-f]+", "", str(closed.jaxpr))
-        h.update(text.encode())
-        for c in closed.consts:
-            a = np.asarray(c)
-            h.update(f"{a.dtype}{a.shape}".encode())
-            h.update(a.tobytes())
-        return text
-
     with jax.enable_x64(True):
         params = jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(
             np.shape(a), jnp.float64 if jnp.issubdtype(jnp.result_type(a), jnp.floating) else jnp.result_type(a)),
             flt.params)
-        h.update(str(jax.tree_util.tree_structure(params)).encode())
-        init, state = jax.make_jaxpr(flt.init, return_shape=True)(params, Prior(f64(n), f64(n, n)))
-        texts = [add(init)]
+        state = jax.eval_shape(flt.init, params, Prior(f64(n), f64(n, n)))
+        calls = [(flt.init, (params, Prior(f64(n), f64(n, n))))]
         for present in (None, jax.ShapeDtypeStruct((m,), bool)):
             meas = Meas(f64(m), f64(), jax.ShapeDtypeStruct((), bool), present)
-            for fn in (flt.step, flt.coast) if flt.coast is not None else (flt.step,):
-                texts.append(add(jax.make_jaxpr(fn)(params, state, meas)))
-    if any("callback" in t for t in texts):
-        return None
-    return h.hexdigest()
+            calls += [(fn, (params, state, meas)) for fn in (flt.step, flt.coast) if fn is not None]
+        key = traced_key(calls)
+    return None if key is None else f"{jax.tree_util.tree_structure(params)} {key}"
+
 
 @dataclass(frozen=True)
 class DeclaredFilter:
