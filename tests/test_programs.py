@@ -123,3 +123,36 @@ def test_a_filter_of_ones_own_is_kept_by_what_it_compiles_to(tmp_path):
         assert len(list((tmp_path / "programs").glob("*" + programs.SUFFIX))) == 1
     finally:
         programs.keep_in(session)
+
+
+def test_a_truth_and_a_sensor_of_ones_own_are_kept_by_what_they_trace_to():
+    """Two truths (or sensors' h) written alike are one structure, one baking in another number is
+    another; an experiment of them has a key in the store (nothing in it held by identity)."""
+    import jax.numpy as jnp
+
+    import tracklab
+    from tracklab.scenarios import Generated
+    from tracklab.sensors import CustomSensor
+
+    def truth(speed):
+        def draw(key):
+            k = jnp.arange(21.0)
+            return jnp.stack([1000.0 + speed * k, jnp.full_like(k, speed), 2000.0 + 0 * k, 0 * k], -1)
+        return Generated(draw, dt=1.0, steps=20, dim=2).keyed()
+
+    def radar(bias):
+        h = lambda p: jnp.stack([jnp.hypot(p[0], p[1]) + bias, jnp.arctan2(p[1], p[0])])  # noqa: E731
+        return CustomSensor(h, np.diag([100.0, 1e-6]), angles=(False, True), dim=2).keyed()
+
+    assert truth(150.0) == truth(150.0) and truth(150.0) != truth(200.0)
+    assert radar(0.0).h_fn == radar(0.0).h_fn and radar(0.0).h_fn != radar(5.0).h_fn
+    exp = tracklab.experiment(truth(150.0), radar(0.0), [{"kind": "ekf", "label": "EKF"}], runs=2)
+    again = tracklab.experiment(truth(150.0), radar(0.0), [{"kind": "ekf", "label": "EKF"}], runs=2)
+    treedef = jax.tree_util.tree_structure(exp.params())
+    assert exp.structure() == again.structure() and treedef == jax.tree_util.tree_structure(again.params())
+    session = programs.folder()
+    programs.keep_in(Path("/nonexistent-folder-never-written"))  # a key is made, nothing written
+    try:
+        assert programs.key(exp.structure(), treedef, (), 2, "float64", None) is not None
+    finally:
+        programs.keep_in(session)
