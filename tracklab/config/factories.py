@@ -96,7 +96,8 @@ def python_path(file, value) -> tuple[Path, ...]:
     for v in value:
         folder = (base / v).resolve()
         if not folder.is_dir():
-            raise ConfigError(file, "experiment.pythonpath", v, f"is not a folder (from {base})")
+            raise ConfigError(file, "experiment.pythonpath", v, f"is not a folder: {folder} (relative to the "
+                              "experiment file's folder)")
         out.append(folder)
     return tuple(out)
 

@@ -354,12 +354,16 @@ def _own_filter(f, i, fs, spec, suite, scenario, folders=()):
     params = declared(factory)
     for name in params:
         try:
-            why = factory.problem(name, options[name] if name in options else params[name].value(context))
+            default = params[name].value(context)
         except Exception as e:  # noqa: BLE001 - the user's default, any error
-            why = f"has a default that fails: {first_line(e)}"
+            raise ConfigError(f, f"filter[{i}].{name}", None, f"its declared default fails: {first_line(e)}") from None
+        why = factory.problem(name, options.get(name, default), default)
+        if why and name in options:
+            raise ConfigError(f, f"filter[{i}].{name}", options[name], why)
         if why:
-            raise ConfigError(f, f"filter[{i}].{name}", options.get(name), why if name in options else
-                              f"its default from the factory's declaration {why}")
+            shown = None if default is None else np.asarray(default).tolist()
+            raise ConfigError(f, f"filter[{i}].{name}", None, f"its declared default ({shown}, from the experiment) "
+                              f"{why.removeprefix('is ')}: give it in the table")
     flt = factories.call_factory(f, f"filter[{i}].kind", spec, factory, context, options)
     if not isinstance(flt, Filter):
         raise ConfigError(f, f"filter[{i}].kind", spec, f"the factory returned {type(flt).__name__}: expected a "

@@ -57,7 +57,7 @@ def _relabel(doc, exp, values: dict):
     section, labels = exp.tables()
     renamed = {}
     for label, table in zip(labels, doc.get(section, [])):
-        if values.get(label):
+        if values.get(label) and not label.endswith(", tuned"):  # a tuned file tuned again keeps its label
             renamed[label] = table["label"] = f"{label}, tuned"
     report = doc.get("report")
     if isinstance(report, dict) and report.get("baseline") in renamed:

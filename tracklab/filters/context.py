@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab.models import Kinematic, cv
-from tracklab.sensors import SensorSuite
+from tracklab.sensors import CustomSensor, Sensor, SensorSuite
 
 
 class SensorModel(NamedTuple):
@@ -84,7 +84,7 @@ def sensor_model(sensor) -> SensorModel:
 def filter_context(scenario, seen, accel_sigma: float | None = None) -> FilterContext:
     """The context of a filter that sees the sensors ``seen`` (a sensor, a suite or a sequence) of
     ``scenario``; ``accel_sigma`` by default the scenario's (0 when its truth has none)."""
-    sensors = seen.sensors if isinstance(seen, SensorSuite) else seen
+    sensors = seen.sensors if isinstance(seen, SensorSuite) else (seen,) if isinstance(seen, (Sensor, CustomSensor)) else seen
     if accel_sigma is None:
         accel_sigma = float(np.asarray(scenario.accel_sigma))
     return FilterContext(float(scenario.dt), int(scenario.steps), int(scenario.dim), cv(scenario.dim, scenario.dt),

@@ -45,17 +45,21 @@ class Declared:
         self.params = dict(params)
 
     def value(self, name: str, given, context):
-        """A declared number as the filter's params hold it (a float array): ``given``, or its default
-        when None; ValueError in one line for one that does not fit its declaration (``problem``)."""
-        p = self.params[name]
-        v = p.value(context) if given is None else given
-        why = self.problem(name, v)
+        """A declared number as the filter's params hold it (a float array of its default's shape):
+        ``given``, or its default when None; ValueError in one line for one that does not fit its
+        declaration (``problem``)."""
+        default = self.params[name].value(context)
+        v = default if given is None else given
+        why = self.problem(name, v, default)
         if why:
             raise ValueError(f"{name} = {v!r}: {why}")
-        return np.asarray(v, float)
+        a = np.asarray(v, float)
+        return a if default is None else np.broadcast_to(a, np.shape(default)).copy()
 
-    def problem(self, name: str, value) -> str | None:
-        """Why ``value`` cannot be the declared number ``name`` (None if it can)."""
+    def problem(self, name: str, value, default=None) -> str | None:
+        """Why ``value`` cannot be the declared number ``name`` (None if it can): not a number or a
+        list of numbers, not finite, not of its default's shape (a single number for a list is
+        every entry), or outside its constraint."""
         if value is None:
             return "is required (it has no default)"
         if isinstance(value, bool) or (isinstance(value, (list, tuple)) and any(isinstance(x, bool) for x in value)):
@@ -66,13 +70,17 @@ class Declared:
             return "must be a number or a list of numbers"
         if a.ndim > 1 or not np.all(np.isfinite(a)) or np.any(np.abs(a) > MAX_MAGNITUDE):
             return f"must be a finite number (or a list of them) of magnitude <= {MAX_MAGNITUDE:g}"
+        shape = None if default is None else np.shape(default)
+        if shape is not None and a.shape != shape and a.ndim != 0:
+            return ("must be a number" if shape == () else f"must be a number or a list of {shape[0]} numbers") + \
+                   f" (as its default: {np.asarray(default).tolist()})"
         if not self.params[name].constraint.contains({name: a}):
-            return f"must be in {self.params[name].constraint.bounds}"
+            return f"must be {self.params[name].constraint.requirement}"
         return None
 
-    def __call__(self, context, **options) -> Filter:
+    def __call__(self, context, *args, **options) -> Filter:
         values = {n: jnp.asarray(self.value(n, options.pop(n, None), context)) for n in self.params}
-        flt = self.factory(context, **options)
+        flt = self.factory(context, *args, **options)
         if not isinstance(flt, Filter):
             return flt  # the caller says what is wrong with it
         own = {} if flt.params is None else flt.params

@@ -84,6 +84,18 @@ def merged(sums: Sums) -> dict:
     return out
 
 
+def lane_key(i: int) -> str:
+    """The key of lane ``i``'s sums inside a chunk: lanes are numbered, not named, so that a label is
+    no part of what a program is compiled for (a relabelled file runs the same program)."""
+    return f"#{i}"
+
+
+def labelled(sums: dict, labels) -> dict:
+    """``sums`` with each lane's key (``lane_key``) replaced by its label; other keys as they are."""
+    names = {lane_key(i): label for i, label in enumerate(labels)}
+    return {names.get(k, k): v for k, v in sums.items()}
+
+
 class World(NamedTuple):
     """What the runner needs of a world (see the module's doc)."""
 

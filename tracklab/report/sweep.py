@@ -52,12 +52,7 @@ def _write_sweep(exp, doc, tmp, figures):
         cells = ([f"{v:.4g}" for v in r[:len(names)]] + [md_cell(r[len(names)])]
                  + [with_half_width(v, hw, "{:.4g}") for v, hw in zip(r[len(names) + 1:-1], h)] + [str(int(r[-1]))])
         lines.append("| " + " | ".join(cells) + " |")
-    level = doc["points"][0]["stats"].get("level", 0.95)
-    same = ("every point on the same runs" if doc.get("programs", 1) == 1 else
-            f"the grid ran as {doc['programs']} programs, {', '.join(doc.get('structural')) or 'runs or seed'} changing "
-            "what is compiled: the points of one program on the same runs")
-    caption = (f"\n± : half-width of the {level:.0%} confidence interval over the {runs_text(doc['runs'])} runs at each "
-               f"point ({same}).\n") if with_hw else ""
+    caption = "\n" + sweep_caption(doc) + "\n" if with_hw else ""
     (tmp / "table.md").write_text("\n".join(lines) + "\n" + caption)
     buf = io.StringIO()
     header_csv = header[:-1] + [f"{m}_hw" for m in with_hw] + header[-1:]
@@ -79,6 +74,24 @@ def _write_sweep(exp, doc, tmp, figures):
     if figures and len(names) <= 2:
         _plot(doc, names, labels, tmp)
     return rows
+
+def sweep_caption(doc) -> str:
+    """What a sweep table's ± are, and which points ran on the same runs."""
+    levels = sorted({p["stats"].get("level", 0.95) for p in doc["points"]})
+    level = (f"the {levels[0]:.0%} confidence interval" if len(levels) == 1
+             else "each point's confidence interval (at its report.level)")
+    structural, separate = doc.get("structural") or [], doc.get("separate") or []
+    if not structural and not separate:
+        same = "every point on the same runs"
+    else:
+        parts = []
+        if structural:
+            parts.append(f"{', '.join(structural)} changing what is compiled, the grid ran as {doc['programs']} programs")
+        if separate:
+            parts.append(f"each value of {', '.join(separate)} on runs of its own")
+        same = "; ".join(parts) + "; the other points on the same runs"
+    return f"± : half-width of {level} over the {runs_text(doc['runs'])} runs at each point ({same})."
+
 
 def runs_text(runs) -> str:
     """A sweep's runs per point: one number, or the range a runs axis spans."""

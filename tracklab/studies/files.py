@@ -90,7 +90,8 @@ def run_tune(exp, names, *, steps, lr, loss, runs_per_step, labels, out_toml: Pa
     for lane, before in res.eval_initial.items():  # a filter's (a closed loop's case's) own loss
         say(f"{lane}: held-out {res.loss} ({res.eval_runs} runs) {number(before)} -> "
             f"{number(res.eval_tuned.get(lane, math.nan))}")
-    say(f"tuned in {res.wall_s:.1f} s ({len(res.history)} steps of {res.runs_per_step} runs)")
+    n = len(res.history)
+    say(f"tuned in {res.wall_s:.1f} s ({n} step{'' if n == 1 else 's'} of {res.runs_per_step} runs)")
     if not writes():  # process 0 of a run of several processes writes
         return res
     text = tuned_text(exp, res.params, out_toml)

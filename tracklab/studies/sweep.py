@@ -176,11 +176,27 @@ def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=
     wall = time.perf_counter() - t0
     doc_points = [{"values": dict(zip(names, map(float, v))), "stats": st} for v, st in zip(values, stats)]
     each = sorted({int(runs or at.runs) for at, _ in made})
-    return {"axes": {a.name: a.values.tolist() for a in axes}, "titles": {a.name: a.title for a in axes},
+    return {"axes": {a.name: a.values.tolist() for a in axes}, "titles": {a.name: _title(exp, a) for a in axes},
             "log": {a.name: a.log for a in axes}, "points": doc_points, "wall_s": wall, "compile_s": compile_s,
             "runs": each[0] if len(each) == 1 else each, "programs": len(programs), "structural": structural,
+            "separate": separate,
             "units": list(exp.units), "nees_dof": exp.nees_dof,
             "metrics": [[k, t.format(pos=exp.units[0])] for k, t in exp.sweep_metrics]}
+
+def _title(exp, a: Axis) -> str:
+    """An axis in a figure: its field and unit, a unit of a unit's declared number from its declaration."""
+    if a.path is None or a.path[1] is None:
+        return a.title
+    section, label, name = a.path
+    table, labels = exp.tables()
+    if section == table:
+        if label not in labels and label.isdigit() and 1 <= int(label) <= len(labels):
+            label = labels[int(label) - 1]
+        p = exp.declared().get(label, {}).get(name)
+        if p is not None:
+            return f"{a.name} ({p.unit})" if p.unit else a.name
+    return a.title
+
 
 def _group_of(groups: dict, P: int) -> list:
     """Each grid point's group key."""

@@ -102,6 +102,9 @@ def selection(exp: Experiment, names, labels=None) -> dict:
     (``tracklab.pytree.named_leaves``; constraints "positive", "unit", "free" or (lo, hi)).
     ``ValueError`` in one line for a label, name or constraint that does not fit."""
     declared = exp.declared()
+    names = [names] if isinstance(names, str) else names
+    if isinstance(names, dict):
+        names = {label: [w] if isinstance(w, str) else w for label, w in names.items()}
     if not isinstance(names, dict):
         return {l: picked for l, d in declared.items() if not labels or l in labels
                 if (picked := {n: d[n].constraint for n in names if n in d and d[n].tune})}
@@ -247,8 +250,8 @@ def objective(exp: Experiment, names, loss=None, labels=None) -> Objective:
         return {l: decode(chosen[l], theta[l]) for l in theta}
 
     def per_lane(theta, key, idx, live):
-        sums = fn(exp.with_values(params, values(theta)), key, idx, live,
-                  jnp.zeros((world.lanes, idx.shape[0]), bool))
+        sums = runner.labelled(fn(exp.with_values(params, values(theta)), key, idx, live,
+                                  jnp.zeros((world.lanes, idx.shape[0]), bool)), structure.labels)
         return {lane: loss_fn(sums, lane) for lane in lanes}
 
     def why_not(vals):

@@ -213,9 +213,11 @@ class AirborneExperiment(protocol.Experiment):
         enough = None if target is None else (
             lambda sums, samples, done: precision_reached(samples, target, self.level, self.headline()))
         runs = runs or self.runs
-        return runner.run(self.world(self.structure(chunk, runs)), self.params(), runs,
-                          self.seed if seed is None else seed, precision=precision or self.precision, progress=progress,
-                          enough=enough)
+        out = runner.run(self.world(self.structure(chunk, runs)), self.params(), runs,
+                         self.seed if seed is None else seed, precision=precision or self.precision, progress=progress,
+                         enough=enough)
+        out.sums = runner.labelled(out.sums, self.tables()[1])
+        return out
 
     def simulate(self, runs=None, seed=None, progress=None, precision=None, target_precision=None) -> dict:
         target = target_precision or self.target_precision
@@ -252,4 +254,5 @@ class AirborneExperiment(protocol.Experiment):
 
     def document(self, sums, runs, wall, compile_s, precision, samples=None):
         """The statistics document of the per-period ``sums`` over ``runs`` runs (``statistics.document``)."""
-        return statistics.document(self, sums, runs, wall, compile_s, precision, samples)
+        return statistics.document(self, runner.labelled(sums, self.tables()[1]), runs, wall, compile_s, precision,
+                                   samples)

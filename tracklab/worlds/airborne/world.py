@@ -21,7 +21,7 @@ the chunk size.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import jax
@@ -35,9 +35,10 @@ from tracklab.worlds.airborne.tracker import Timing
 
 @dataclass(frozen=True)
 class TrackerSpec:
-    """One [[tracker]] as structure: its label, kind and structural choices ((field, value) pairs)."""
+    """One [[tracker]] as structure: its kind and structural choices ((field, value) pairs); its label
+    names it in the tables only."""
 
-    label: str
+    label: str = field(compare=False, repr=False)
     kind: str  # a key of registry.TRACKERS
     choices: tuple = ()
 
@@ -85,7 +86,7 @@ def _chunk(structure: AirborneStructure):
         runs = jax.vmap(lambda key: engage(params.engagement, trackers, params.trackers, cfg, params.sd0, key))(keys)
         out, samples = {}, []
         for i, (spec, res) in enumerate(zip(structure.trackers, runs)):
-            out[spec.label] = sums(res, live & ~exclude[i])
+            out[runner.lane_key(i)] = sums(res, live & ~exclude[i])
             samples.append(run_samples(res, live & ~exclude[i], params.windows))
         values, ok, kept = (jnp.stack(a) for a in zip(*samples))
         return runner.Sums(add=out, per_run={"values": values, "ok": ok, "kept": kept})

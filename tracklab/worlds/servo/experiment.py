@@ -316,6 +316,7 @@ class ServoExperiment(protocol.Experiment):
                              progress=progress, enough=enough)
         runs = out.runs
         cases = self.summarise(structure, None, out.sums, out)["filters"]
+        out.sums = runner.labelled(out.sums, structure.labels)
         examples = {c.label: {"error": np.asarray(out.sums[c.label]["example_error"]),
                               "rate_error": np.asarray(out.sums[c.label]["example_rate_error"])} for c in structure.cases}
         n_ticks = self.ticks

@@ -4,6 +4,7 @@ the percentiles of the runs' maximum tracking errors and paired differences to t
 
 from __future__ import annotations
 
+from tracklab.montecarlo import runner
 from tracklab.montecarlo.statistics import lane_intervals
 from tracklab.worlds.servo.world import SAMPLES
 
@@ -12,6 +13,7 @@ def summarise(exp, structure, sums, out, point=None) -> dict:
     """The cases' statistics from their sums over the runs (``point``: which grid point of the
     runner's ``out``); with the runs' samples, each with its ``level`` interval, the percentiles
     of the runs' maximum tracking errors and the paired differences to the baseline case."""
+    sums = runner.labelled(sums, structure.labels)
     cases = {}
     for case in structure.cases:
         s = {k: v for k, v in sums[case.label].items() if not k.startswith("example")}

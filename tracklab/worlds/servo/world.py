@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import jax
@@ -71,9 +71,10 @@ def target_function(kind: str, numbers: dict):
 
 @dataclass(frozen=True)
 class CaseSpec:
-    """One [[case]] as structure: its mode and what estimates the target for it."""
+    """One [[case]] as structure: its mode and what estimates the target for it; its label names it in
+    the tables only."""
 
-    label: str
+    label: str = field(compare=False, repr=False)
     mode: str  # double_loop | velocity_lag | on_axis
     estimator: str | None  # an estimator kind (registry.ESTIMATORS), "perfect" or None
     network: Any = None  # what its code is compiled for beyond its kind (a DEKF's Network)
@@ -180,8 +181,9 @@ def _chunk(structure: ServoStructure):
             mx, rnd, rate, track_ms, rate_ms, err, rate_err = jax.vmap(
                 lambda k: one(params, case, est, params.estimators[i], k))(keys)
             rate = rate if est is not None else None
-            added[case.label], largest[case.label] = case_sums(mx, rnd, rate, live & ~exclude[i], track_ms, rate_ms)
-            first[case.label] = {"example_error": err[0], "example_rate_error": rate_err[0]}
+            key = runner.lane_key(i)
+            added[key], largest[key] = case_sums(mx, rnd, rate, live & ~exclude[i], track_ms, rate_ms)
+            first[key] = {"example_error": err[0], "example_rate_error": rate_err[0]}
             values.append(jnp.stack(run_samples(mx, rnd, rate)))
             oks.append(healthy(mx, rnd, rate) & live & ~exclude[i])
         values = jnp.stack(values)

@@ -49,8 +49,8 @@ class FilterSpec:
     has no report). ``kind`` is what the tables call it.
 
     As structure of a program it is its ``code`` (``program_key``: what its init and step
-    trace to, the constants they close over included) with its label, kind, sensors and
-    layout: two filters with the same code compile to the same program whatever their params'
+    trace to, the constants they close over included) with its kind, sensors and layout (its
+    label names it in the tables only): two filters with the same code compile to the same program whatever their params'
     values, and one whose code changed (a number its factory baked in, an edited module)
     compiles anew. Without a ``code`` it is structure by identity: a new object compiles anew.
     """
@@ -70,8 +70,7 @@ class FilterSpec:
             object.__setattr__(self, "declared", dict(self.filter.declared))
 
     def _value(self):
-        return (self.label, self.kind, tuple(self.sensors), self.layout, self.filter.layout, self.prior_extra_var,
-                self.code)
+        return (self.kind, tuple(self.sensors), self.layout, self.filter.layout, self.prior_extra_var, self.code)
 
     def _by_value(self) -> bool:
         return self.code is not None and self.view is None
@@ -88,7 +87,7 @@ class FilterSpec:
 
     def __repr__(self):
         what = f"code={self.code!r}" if self._by_value() else "<by identity>"  # '<': never kept on disk
-        return (f"FilterSpec(label={self.label!r}, kind={self.kind!r}, sensors={tuple(self.sensors)!r}, "
+        return (f"FilterSpec(kind={self.kind!r}, sensors={tuple(self.sensors)!r}, "
                 f"layout={self.layout or self.filter.layout!r}, prior_extra_var={self.prior_extra_var!r}, {what})")
 
     def with_code(self, scenario, sensor) -> "FilterSpec":
@@ -154,9 +153,10 @@ def program_key(flt: Filter, n: int, m: int) -> str | None:
 @dataclass(frozen=True)
 class DeclaredFilter:
     """A filter of an experiment file, as structure: its kind, motion model, options and what it
-    sees. Its numbers arrive as the params of the program, where ``realise`` builds it."""
+    sees. Its numbers arrive as the params of the program, where ``realise`` builds it. Its label
+    names it in the tables, no part of what is compiled."""
 
-    label: str
+    label: str = field(compare=False, repr=False)
     kind: str
     model: str  # "cv" | "ca"
     options: tuple = ()  # sorted (name, value) pairs, hashable
@@ -197,7 +197,6 @@ def hashable(v):
 class Lane:
     """One filter inside a chunk's scan: its vmapped step and how its state is batched."""
 
-    label: str
     init: Callable  # prior (2d,) of one run -> filter state
     body: Callable  # (state, (z_k, truth_k, t_k, present_k, reports_k)) -> (state, ErrorInputs), one run
     view: Callable | None
@@ -205,7 +204,7 @@ class Lane:
     present: Any  # (T, m) pattern as an array when it is the same in every run, else None
     reports: np.ndarray  # (T,) steps with some component reported
 
-def lane(label, real: Realised, params, P0_cv, pattern, detect_all, dtype) -> Lane:
+def lane(real: Realised, params, P0_cv, pattern, detect_all, dtype) -> Lane:
     """Set up one filter for the chunk's scan (``pattern``: the report pattern (T, m) of what it sees)."""
     flt = real.filter
     pv = cv_index(real.model)
@@ -228,7 +227,7 @@ def lane(label, real: Realised, params, P0_cv, pattern, detect_all, dtype) -> La
         return like(new, state), error_inputs(out, truth_k, pv, dtype)
 
     present = jnp.asarray(pattern) if detect_all else None
-    return Lane(label, init, body, real.view, pattern, present, reports)
+    return Lane(init, body, real.view, pattern, present, reports)
 
 def view_pattern(view, pattern, dtype):
     """The report pattern of a view of the sensors: where it is not NaN given the sensors' pattern."""

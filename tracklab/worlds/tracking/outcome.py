@@ -70,7 +70,7 @@ def result(structure, params, sums, out: runner.Outcome, point: int | None = Non
     """The ``MonteCarloResult`` of one parameter set's sums (the runner's, for ``out.runs`` runs;
     ``point``: which grid point's samples, when the run had several)."""
     scenario = params.scenario
-    sums = unpack(sums, scenario.dim)
+    sums = unpack(runner.labelled(sums, structure.labels), scenario.dim)
     info = sums.pop("_info")
     ex = sums.pop("_example")
     example = {"truth": np.asarray(ex["truth"]), "z": np.asarray(ex["z"])}

@@ -162,7 +162,7 @@ def _chunk(structure: TrackingStructure):
         lanes = []
         for f, p, view in zip(structure.filters, params.filters, views):
             real = f.realise(scenario, sensor, p, params.prior_extra_var)
-            lanes.append(lane(f.label, real, p, P0_cv, view_pattern(view, pattern, dtype), detect_all, dtype))
+            lanes.append(lane(real, p, P0_cv, view_pattern(view, pattern, dtype), detect_all, dtype))
         z_views = []
         if not stream:  # a view of the whole sequence per run, time-major
             z_views = [z_all if ln.view is None else jax.vmap(ln.view, in_axes=1, out_axes=1)(z_all)
@@ -252,7 +252,7 @@ def _chunk(structure: TrackingStructure):
                 # arithmetic inside every reduction that reads it
                 (sums, maxima, first), bad_any, per_run_acc = group_stats(g, pending, w_prev, bad_any, per_run_acc)
                 for j, i in enumerate(g):
-                    out[lanes[i].label] = (sums[j], maxima[j], first[j])
+                    out[runner.lane_key(i)] = (sums[j], maxima[j], first[j])
                 new_states, outs = [], []
                 for i, state in zip(g, states):
                     present_k, reports_k = lane_in[i]
@@ -286,13 +286,14 @@ def _chunk(structure: TrackingStructure):
         for g, (_, _, bad_any, (runmax, acc)) in zip(groups, finals):
             for j, i in enumerate(g):
                 ln = lanes[i]
-                sums, maxima, run0 = (a[1:] for a in out[ln.label])
+                key = runner.lane_key(i)
+                sums, maxima, run0 = (a[1:] for a in out[key])
                 ok = live & ~exclude[i] & ~bad_any[j]
-                added[ln.label] = {"sums": sums, "diverged": jnp.sum((live & bad_any[j]).astype(dtype))}  # cut by unpack
+                added[key] = {"sums": sums, "diverged": jnp.sum((live & bad_any[j]).astype(dtype))}  # cut by unpack
                 for w, name in enumerate(names):  # sum over runs of each run's largest |error| (per axis, then norm)
-                    added[ln.label][f"runmax_pred@{name}"] = jnp.sum(jnp.where(ok, runmax[j, w], 0.0), axis=-1)
-                largest[ln.label] = {"maxima": maxima}
-                first[ln.label] = {"example_x": run0[:, :2 * d], "example_var": run0[:, 2 * d:]}
+                    added[key][f"runmax_pred@{name}"] = jnp.sum(jnp.where(ok, runmax[j, w], 0.0), axis=-1)
+                largest[key] = {"maxima": maxima}
+                first[key] = {"example_x": run0[:, :2 * d], "example_var": run0[:, 2 * d:]}
                 flags[i] = live & bad_any[j]
                 values[i] = jnp.concatenate([acc[j] / jnp.asarray(lengths, dtype)[:, None], runmax[j].reshape(-1, B)])
                 oks[i] = ok
