@@ -91,7 +91,7 @@ def cmd_run(args) -> int:
 
 
 def cmd_list(args) -> int:
-    from tracklab.config.factories import kinds_of_ones_own
+    from tracklab.config.factories import kinds_of_ones_own, structural_keywords
     from tracklab.filters.factory import declared
     from tracklab.worlds.airborne.registry import TRACKERS
     from tracklab.worlds.servo.experiment import TARGET_KINDS
@@ -112,8 +112,9 @@ def cmd_list(args) -> int:
                 print(f"  {'':<4}{spec} ({field}): {factory.allowed}")
                 continue
             params = declared(factory)
-            shown = ", ".join(q.describe(n) for n, q in params.items()) if params else "declares no numbers"
-            print(f"  {'':<4}{spec} ({field}): {shown}")
+            shown = ", ".join(q.describe(n, with_doc=True) for n, q in params.items()) if params else "declares no numbers"
+            rest = structural_keywords(factory)
+            print(f"  {'':<4}{spec} ({field}): {shown}" + (f"; structure: {', '.join(rest)}" if rest else ""))
     if not files:
         print("  (none)")
     print("filter kinds ([[filter]] of a file; parameters [unit] = default):")

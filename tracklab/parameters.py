@@ -186,16 +186,17 @@ class Param:
         """Its default: the declared value, or the declared function of ``context``."""
         return self.default(context) if callable(self.default) else self.default
 
-    def describe(self, name) -> str:
-        """``name [unit] = default``, as `tracklab list` shows it."""
+    def describe(self, name, with_doc=False) -> str:
+        """``name [unit] = default`` (and what it is, ``with_doc``), as `tracklab list` shows it."""
         unit = f" [{self.unit}]" if self.unit else ""
         d = self.default
-        if d is None:
-            return f"{name}{unit}"
         if callable(d):  # a default of the context: what the doc says of it
             return f"{name}{unit} ({self.doc})"
+        doc = f" ({self.doc})" if with_doc and self.doc else ""
+        if d is None:
+            return f"{name}{unit}{doc}"
         shown = f"[{', '.join(f'{v:g}' for v in d)}]" if isinstance(d, tuple) else f"{d:g}"
-        return f"{name}{unit} = {shown}"
+        return f"{name}{unit} = {shown}{doc}"
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,7 @@ anything compiles.
 from __future__ import annotations
 
 import importlib
+import inspect
 import re
 import sys
 import tomllib
@@ -19,6 +20,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 from tracklab.errors import ConfigError, first_line
+from tracklab.filters.factory import Declared, declared
 
 FACTORY_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*")
 
@@ -128,4 +130,19 @@ def kinds_of_ones_own(path) -> list[tuple[str, str, object]]:
                 out.append((field, kind, error or load_factory(path, field, kind, folders)))
             except ConfigError as e:
                 out.append((field, kind, e))
+    return out
+
+
+def structural_keywords(factory) -> list[str]:
+    """The keywords a factory takes besides its context and its declared numbers, ``name = default``
+    (a table's value for one is structure: another value compiles anew)."""
+    fn = factory.factory if isinstance(factory, Declared) else factory
+    try:
+        signature = inspect.signature(fn)
+    except (TypeError, ValueError):
+        return []
+    out = []
+    for p in list(signature.parameters.values())[1:]:
+        if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY) and p.name not in declared(factory):
+            out.append(p.name if p.default is p.empty else f"{p.name} = {p.default!r}")
     return out
