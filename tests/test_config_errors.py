@@ -168,7 +168,7 @@ CASES = [
     # --- non-positive variances -----------------------------------------------------------
     case("sigma-negative", edit(sensor__sigma_r=-100.0), "sensor.sigma_r", "-100.0", "> 0"),
     case("sigma-zero", edit(sensor__sigma_angle=0.0), "sensor.sigma_angle", "0.0", "> 0"),
-    case("sigma-int-zero", edit(sensor__sigma_r=0), "sensor.sigma_r", "0.0"),
+    case("sigma-int-zero", edit(sensor__sigma_r=0), "sensor.sigma_r", "= 0:"),  # as the file writes it
     case("filter-sigma-negative", edit(filter1__sigma_r=-1.0), "filter[1].sigma_r", "-1.0"),
     case("filter-accel-sigma-zero", edit(filter1__accel_sigma=0.0), "filter[1].accel_sigma", "0.0"),
     case("scenario-accel-sigma-negative", edit(scenario__accel_sigma=-1.0), "scenario.accel_sigma", "-1.0"),

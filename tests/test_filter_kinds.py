@@ -19,7 +19,7 @@ from tracklab.worlds.tracking.experiment import Experiment
 from tracklab.errors import ConfigError
 from tracklab.parameters import Constraint, Param
 from tracklab.filters.registry import KINDS, SCALABLE, TUNABLE, declarations
-from tracklab.sensors import SENSOR_KINDS
+from tracklab.sensors import SENSORS
 from tracklab.studies.tune import decode, encode
 
 TUNED = [k for k in KINDS.values() if any(p.tune for p in k.params.values())]
@@ -29,7 +29,7 @@ def test_every_kind_declares_a_doc_the_sensors_it_accepts_and_constrained_parame
     assert list(KINDS) and all(name == k.name for name, k in KINDS.items())
     for k in KINDS.values():
         assert k.doc.strip() and "\n" not in k.doc, k.name
-        assert k.accepts and set(k.accepts) <= set(SENSOR_KINDS) | {"suite", "custom"}, k.name
+        assert k.accepts and set(k.accepts) <= set(SENSORS) | {"suite", "custom"}, k.name
         assert k.params and callable(k.read) and callable(k.build), k.name
         for name, p in k.params.items():
             assert isinstance(p, Param) and isinstance(p.constraint, Constraint), (k.name, name)

@@ -311,10 +311,10 @@ def test_a_tuned_file_is_the_file_with_only_the_tuned_numbers_changed(files, tmp
     from tracklab.worlds.airborne.registry import TRACKERS
     from tracklab.worlds.servo.registry import ESTIMATORS
     from tracklab.scenarios import SCENARIOS
-    from tracklab.sensors import SENSOR_KINDS
+    from tracklab.sensors import SENSORS
 
     own = {k for seen in kinds.values() for k in seen if ":" in k}
-    assert kinds["scenario"] >= set(SCENARIOS) and kinds["sensor"] >= set(SENSOR_KINDS)
+    assert kinds["scenario"] >= set(SCENARIOS) and kinds["sensor"] >= set(SENSORS)
     assert kinds["filter"] >= set(KINDS) and kinds["tracker"] >= set(TRACKERS) and kinds["estimator"] >= set(ESTIMATORS)
     assert {"own_filter:converted_kf", "mine:truth", "mine:radar"} <= own
 

@@ -98,7 +98,7 @@ def cmd_list(args) -> int:
     from tracklab.worlds.servo.registry import ESTIMATORS
     from tracklab.filters.registry import KINDS
     from tracklab.scenarios import SCENARIOS
-    from tracklab.sensors import SENSOR_KINDS
+    from tracklab.sensors import SENSORS
 
     folder = Path(args.dir)
     if not folder.is_dir():
@@ -124,8 +124,9 @@ def cmd_list(args) -> int:
     own = '"package.module:factory"'
     print(f"  {own:<16} your own: factory(context, **the table's other keys) -> Filter (README: Your own filter)")
     print("sensors:")
-    for k, desc in SENSOR_KINDS.items():
-        print(f"  {k:<16} {desc}")
+    for k in SENSORS.values():
+        print(f"  {k.name:<16} {k.doc}")
+        print(f"  {'':<16}   {', '.join(p.describe(n) for n, p in k.params.items())}; p_detect, period [s], offset [s]")
     print(f"  {own:<16} your own: factory(Context(dt, steps, dim), **keys) -> CustomSensor(h, R, angles=...)")
     print("scenarios:")
     for k in SCENARIOS.values():

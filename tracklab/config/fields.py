@@ -125,7 +125,9 @@ def declared_numbers(sec: Section, params, context=None) -> dict:
         if not ok:
             raise sec._err(name, v, "must be a list of numbers" if listed else "must be a number")
         a = np.asarray(v, float)
-        if not np.all(np.isfinite(a)) or np.any(np.abs(a) > MAX_MAGNITUDE) or not p.constraint.contains({name: a}):
+        if not np.all(np.isfinite(a)) or np.any(np.abs(a) > MAX_MAGNITUDE):
+            raise sec._err(name, v, f"must be a finite number of magnitude <= {MAX_MAGNITUDE:g}")
+        if not p.constraint.contains({name: a}):
             raise sec._err(name, v, f"must be {p.constraint.requirement}" + (f" ({p.unit})" if p.unit else ""))
         out[name] = tuple(float(x) for x in a) if listed else float(a)
     return out

@@ -22,8 +22,8 @@ from tracklab.filters.core import Filter
 from tracklab.pytree import Code
 from tracklab.scenarios import Generated, Scenario
 from tracklab.sensors import (
-    SENSOR_KINDS,
     SENSOR_SIGMAS,
+    SENSORS,
     CustomSensor,
     Sensor,
     SensorSuite,
@@ -50,7 +50,7 @@ def _suite(sensors, scenario) -> SensorSuite:
             raise ConfigError(WHERE, field, type(s).__name__, "must be a tracklab.sensors.Sensor or CustomSensor")
         if isinstance(s, Sensor):
             if s.kind not in SENSOR_SIGMAS:
-                raise ConfigError(WHERE, f"{field}.kind", s.kind, f"must be one of {', '.join(SENSOR_KINDS)} "
+                raise ConfigError(WHERE, f"{field}.kind", s.kind, f"must be one of {', '.join(SENSORS)} "
                                   "(a sensor of one's own: tracklab.sensors.CustomSensor(h, R))")
             want = s.dim if s.kind == "cartesian" else len(SENSOR_SIGMAS[s.kind])
             if len(s.sigma) != want or not all(np.isfinite(v) and v > 0 for v in s.sigma):

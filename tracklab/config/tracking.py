@@ -46,8 +46,8 @@ from tracklab.scenarios import (
     ScenarioContext,
 )
 from tracklab.sensors import (
-    SENSOR_KINDS,
     SENSOR_SIGMAS,
+    SENSORS,
     CustomSensor,
     Sensor,
     SensorSuite,
@@ -56,7 +56,6 @@ from tracklab.toml_fields import sigma_list
 from tracklab.worlds.tracking.experiment import Experiment, FilterConfig
 from tracklab.worlds.tracking.lanes import FilterSpec
 
-SENSOR_DIM = {"polar": 2, "spherical": 3, "angles": 3, "mount": 3}  # dimension of the truth they observe
 
 
 def _multiple_of(value, dt, zero=True):
@@ -80,9 +79,9 @@ def _parse_sensors(f, raw):
     for where, table in _sensor_tables(f, raw):
         sn = Section(f, where, table)
         kind = sn.string("kind", required=True)
-        if kind not in SENSOR_KINDS and not is_factory(kind):
+        if kind not in SENSORS and not is_factory(kind):
             raise ConfigError(f, f"{where}.kind", kind,
-                              f"must be one of {', '.join(SENSOR_KINDS)}, or \"package.module:factory\" (a sensor of one's own)")
+                              f"must be one of {', '.join(SENSORS)}, or \"package.module:factory\" (a sensor of one's own)")
         out.append((where, sn, kind))
     return out
 
@@ -99,14 +98,15 @@ def _build_sensors(f, parsed, dim, dt, steps, folders=()):
         if is_factory(kind):
             sensors.append(_own_sensor(f, where, sn, kind, name, dim, dt, steps, folders))
             continue
-        if SENSOR_DIM.get(kind, dim) != dim:
-            hint = " (set scenario.altitude for a 3-D crossing)" if SENSOR_DIM[kind] == 3 else " (remove scenario.altitude, or use a 3-D sensor)"
-            raise ConfigError(f, f"{where}.kind", kind, f"observes {SENSOR_DIM[kind]}-D positions but the scenario is {dim}-D{hint}")
+        observes = SENSORS[kind].dim
+        if observes is not None and observes != dim:
+            hint = " (set scenario.altitude for a 3-D crossing)" if observes == 3 else " (remove scenario.altitude, or use a 3-D sensor)"
+            raise ConfigError(f, f"{where}.kind", kind, f"observes {observes}-D positions but the scenario is {dim}-D{hint}")
         p_detect, period, offset = _timing(f, where, sn, dt)
         if kind == "cartesian":
             sigma = sigma_list(f, f"{where}.sigma", sn.get("sigma"), dim)
         else:
-            sigma = tuple(sn.number(k, required=True, positive=True) for k in SENSOR_SIGMAS[kind])
+            sigma = tuple(declared_numbers(sn, SENSORS[kind].params).values())
         sn.check_unknown()
         frame_dim = 2 if kind == "mount" else dim  # a mount observes its two angles
         sensor = Sensor(kind, frame_dim, sigma, p_detect, name=name, dt=dt, period=period, offset=offset)
@@ -225,7 +225,7 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
     ex.check_unknown()
 
     parsed_sensors = _parse_sensors(f, raw)
-    fixed_dims = {SENSOR_DIM[k] for _, _, k in parsed_sensors if k in SENSOR_DIM}
+    fixed_dims = {SENSORS[k].dim for _, _, k in parsed_sensors if k in SENSORS and SENSORS[k].dim is not None}
     sensor_dim = fixed_dims.pop() if len(fixed_dims) == 1 else None
     if len(fixed_dims) > 0:
         raise ConfigError(f, "[[sensor]]", "...", "all sensors must observe positions of the same dimension")

@@ -3,9 +3,10 @@
 from tracklab.sensors.conversion import CONVERSIONS
 from tracklab.sensors.custom import CustomSensor
 from tracklab.sensors.geometry import (
-    SENSOR_KINDS,
     SENSOR_SIGMAS,
+    SENSORS,
     Sensor,
+    SensorKind,
     SensorSuite,
     angles_h,
     cartesian_h,
@@ -15,6 +16,6 @@ from tracklab.sensors.geometry import (
 )
 
 __all__ = [
-    "CONVERSIONS", "CustomSensor", "SENSOR_KINDS", "SENSOR_SIGMAS", "Sensor", "SensorSuite", "angles_h", "cartesian_h", "epochs", "polar_h",
+    "CONVERSIONS", "CustomSensor", "SENSORS", "SENSOR_SIGMAS", "Sensor", "SensorKind", "SensorSuite", "angles_h", "cartesian_h", "epochs", "polar_h",
     "spherical_h",
 ]

@@ -25,6 +25,7 @@ measurement is the concatenation of theirs (NaN where a sensor has no report).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Mapping
 
 import jax
 import jax.numpy as jnp
@@ -32,6 +33,7 @@ import numpy as np
 
 from tracklab import random
 from tracklab.linalg import jacobian
+from tracklab.parameters import Param, positive
 from tracklab.pytree import static
 
 
@@ -253,17 +255,33 @@ class SensorSuite:
         return total
 
 
-SENSOR_KINDS = {
-    "polar": "2-D range and angle: sigma_r (m), sigma_angle (rad)",
-    "spherical": "3-D range, azimuth, elevation (laser): sigma_r (m), sigma_az, sigma_el (rad)",
-    "angles": "3-D azimuth and elevation (infrared): sigma_az, sigma_el (rad)",
-    "cartesian": "1-/2-/3-D position: sigma (m), one value or one per axis",
-    "mount": "alt-azimuth mount: azimuth and elevation (deg), sigma_az, sigma_el (deg); 3-D truth",
-}
-SENSOR_SIGMAS = {  # each kind's noise fields, in the order of its measurement vector
-    "polar": ("sigma_r", "sigma_angle"),
-    "spherical": ("sigma_r", "sigma_az", "sigma_el"),
-    "angles": ("sigma_az", "sigma_el"),
-    "cartesian": ("sigma",),
-    "mount": ("sigma_az", "sigma_el"),
-}
+@dataclass(frozen=True)
+class SensorKind:
+    """A kind of sensor a [sensor] table may name: what it measures, the dimension of the truth it
+    observes (None: any), and its noise standard deviations (``params``: field -> ``Param``, in the
+    order of its measurement vector), each read and checked as declared. Its timing and detection
+    (``period``, ``offset``, ``p_detect``) are every sensor's."""
+
+    name: str
+    doc: str
+    dim: int | None
+    params: Mapping[str, Param]
+
+
+_RANGE = Param("range noise std", positive, "m")
+SENSORS: dict[str, SensorKind] = {k.name: k for k in (
+    SensorKind("polar", "2-D range and bearing", 2,
+               {"sigma_r": _RANGE, "sigma_angle": Param("bearing noise std", positive, "rad")}),
+    SensorKind("spherical", "3-D range, azimuth, elevation (a laser)", 3,
+               {"sigma_r": _RANGE, "sigma_az": Param("azimuth noise std", positive, "rad"),
+                "sigma_el": Param("elevation noise std", positive, "rad")}),
+    SensorKind("angles", "3-D azimuth and elevation (an infrared sensor)", 3,
+               {"sigma_az": Param("azimuth noise std", positive, "rad"),
+                "sigma_el": Param("elevation noise std", positive, "rad")}),
+    SensorKind("cartesian", "1-/2-/3-D position", None,
+               {"sigma": Param("position noise std, one value or one per axis", positive, "m")}),
+    SensorKind("mount", "alt-azimuth mount: azimuth and elevation of a 3-D truth, filters working in (az, el)", 3,
+               {"sigma_az": Param("azimuth noise std", positive, "deg"),
+                "sigma_el": Param("elevation noise std", positive, "deg")}),
+)}
+SENSOR_SIGMAS = {k.name: tuple(k.params) for k in SENSORS.values()}  # each kind's noise fields, in z's order

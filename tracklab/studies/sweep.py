@@ -32,6 +32,8 @@ import numpy as np
 
 from tracklab.config import parse_experiment
 from tracklab.config.paths import Axis, set_value, table_of
+from tracklab.scenarios import SCENARIOS
+from tracklab.sensors import SENSORS
 from tracklab.errors import ConfigError
 from tracklab.memory import check
 from tracklab.montecarlo import runner
@@ -184,10 +186,18 @@ def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=
             "metrics": [[k, t.format(pos=exp.units[0])] for k, t in exp.sweep_metrics]}
 
 def _title(exp, a: Axis) -> str:
-    """An axis in a figure: its field and unit, a unit of a unit's declared number from its declaration."""
-    if a.path is None or a.path[1] is None:
+    """An axis in a figure: its field and unit — a declared number's from its declaration (a unit's,
+    a sensor's or a scenario's), another's from the fields' table (``paths.UNITS``)."""
+    if a.path is None:
         return a.title
     section, label, name = a.path
+    kind = _kind_of(exp.raw.get(section), label)
+    declared = (SENSORS.get(kind) if section == "sensor" else SCENARIOS.get(kind) if section == "scenario" else None)
+    if declared is not None and name in declared.params:
+        unit = declared.params[name].unit
+        return f"{a.name} ({unit})" if unit else a.name
+    if label is None:
+        return a.title
     table, labels = exp.tables()
     if section == table:
         if label not in labels and label.isdigit() and 1 <= int(label) <= len(labels):
@@ -196,6 +206,15 @@ def _title(exp, a: Axis) -> str:
         if p is not None:
             return f"{a.name} ({p.unit})" if p.unit else a.name
     return a.title
+
+
+def _kind_of(tables, label) -> str | None:
+    """The kind of the table a PATH names (a section's table, or the entry of an array picked by label)."""
+    try:
+        t = table_of({"x": tables}, ("x", label, "")) if tables is not None else None
+    except ValueError:
+        return None
+    return t.get("kind") if isinstance(t, dict) else None
 
 
 def _group_of(groups: dict, P: int) -> list:
