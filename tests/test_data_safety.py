@@ -19,8 +19,8 @@ import pytest
 from tracklab import cli
 from tracklab.config import load_experiment
 from tracklab.errors import ConfigError
-from tracklab.output import (HEADER_KEY, atomic_folder, check_results_folder, check_tuned_file, clean_stale,
-                             foreign_entries)
+from tracklab.output import (HEADER_KEY, MANIFEST, atomic_folder, check_results_folder, check_tuned_file, clean_stale,
+                             foreign_entries, temporary_name, temporary_of, write_text_atomically)
 
 SMALL = """
 [experiment]
@@ -229,7 +229,7 @@ def test_atomic_folder_replaces_in_one_step_and_keeps_the_old_until_then(tmp_pat
         (tmp / "stats.json").write_text(results_doc(note="new"))
         assert json.loads((out / "stats.json").read_text())["note"] == "old"  # untouched while writing
     assert json.loads((out / "stats.json").read_text())["note"] == "new"
-    assert sorted(os.listdir(out)) == ["stats.json"] and leftovers(tmp_path) == []
+    assert sorted(os.listdir(out)) == [MANIFEST, "stats.json"] and leftovers(tmp_path) == []
     with pytest.raises(RuntimeError), atomic_folder(out) as tmp:  # a failure part-way: nothing changes
         (tmp / "stats.json").write_text(results_doc(note="half"))
         raise RuntimeError
@@ -250,20 +250,26 @@ def test_atomic_folder_through_a_symlink_keeps_the_link(tmp_path):
 def test_stale_temporaries_of_dead_processes_are_cleaned_and_a_lost_folder_restored(tmp_path):
     pid = dead_pid()
     out = tmp_path / "res"
-    make_results(tmp_path / f".res.old-{pid}", "kept")  # a kill fell between the two renames
-    make_results(tmp_path / f".res.tmp-{pid}", "half")
-    cut = tmp_path / f".res.tmp-{dead_pid()}"  # killed while writing stats.json: the header, then nothing
+    make_results(tmp_path / temporary_name("res", "old", pid), "kept")  # a kill fell between the two renames
+    make_results(tmp_path / temporary_name("res", "tmp", pid), "half")
+    cut = tmp_path / temporary_name("res", "tmp", dead_pid())  # killed while writing stats.json: the header, then nothing
     cut.mkdir()
     (cut / "stats.json").write_text('{"tracklab_version":"0.1.0","na')
-    make_results(tmp_path / f".other.tmp-{pid}", "not ours")  # another output's: left alone
-    live = tmp_path / f".res.tmp-{os.getppid()}"  # a live process's: left alone
+    other = temporary_name("other", "tmp", pid)  # another output's: left alone
+    make_results(tmp_path / other, "not ours")
+    live = tmp_path / temporary_name("res", "tmp", os.getppid())  # a live process's: left alone
     make_results(live, "live")
-    mine = tmp_path / f".res.tmp-{dead_pid()}"  # a look-alike holding a user's file: never touched
+    mine = tmp_path / temporary_name("res", "tmp", dead_pid())  # holding a user's file: never touched
     mine.mkdir()
     (mine / "notes.txt").write_text("precious")
+    forged = temporary_name("res", "tmp", pid)
+    forged = forged[:-1] + ("0" if forged[-1] != "0" else "1")  # a TOKEN whose check digits do not match
+    unmarked = [f".res.tmp-{pid}", f".res.old-{pid}", forged]
+    for name in unmarked:  # without tracklab's token (a user's, or an older tracklab's): never touched
+        make_results(tmp_path / name, "a user's")
     clean_stale(out)
     assert json.loads((out / "stats.json").read_text())["note"] == "kept"
-    assert sorted(os.listdir(tmp_path)) == sorted([".other.tmp-%d" % pid, live.name, mine.name, "res"])
+    assert sorted(os.listdir(tmp_path)) == sorted([other, live.name, mine.name, "res", *unmarked])
     assert (mine / "notes.txt").read_text() == "precious"
 
 
@@ -278,6 +284,100 @@ def test_foreign_entries_names_what_tracklab_did_not_write(tmp_path):
     assert foreign_entries(tmp_path / "fake") == ["stats.json"]
     (tmp_path / "empty").mkdir()
     assert check_results_folder(tmp_path / "empty", None) == (tmp_path / "empty").resolve()
+
+
+def listed(folder: Path) -> list[str]:
+    doc = json.loads((folder / MANIFEST).read_text())
+    assert doc[HEADER_KEY]
+    return doc["files"]
+
+
+def test_a_results_folder_lists_what_tracklab_wrote_and_nothing_else_counts_as_its(tmp_path, capsys):
+    """The manifest lists exactly what was written (figures included); a file of the user's
+    dropped in, a PNG included, makes the folder one tracklab did not write: refused in one line
+    before anything runs, and kept."""
+    out = tmp_path / "out"
+    with atomic_folder(out) as tmp:
+        (tmp / "stats.json").write_text(results_doc(note="first"))
+        (tmp / "table.md").write_text("| first |\n")
+        (tmp / "rmse.png").write_bytes(b"\x89PNG first")
+    assert listed(out) == ["rmse.png", "stats.json", "table.md"] and foreign_entries(out) == []
+    with atomic_folder(out) as tmp:  # written again: what this write wrote, and no figure of the first
+        (tmp / "stats.json").write_text(results_doc(note="second"))
+    assert sorted(os.listdir(out)) == [MANIFEST, "stats.json"] and listed(out) == ["stats.json"]
+
+    (out / "rmse.png").write_bytes(b"\x89PNG the user's own")  # a name tracklab uses, but not written here
+    (out / "mine.png").write_bytes(b"\x89PNG the user's own")
+    before = snapshot(out)
+    assert foreign_entries(out) == ["mine.png", "rmse.png"]
+    with pytest.raises(ConfigError, match="mine.png, rmse.png"):
+        check_results_folder(out, None)
+    with pytest.raises(ConfigError, match="did not write"), atomic_folder(out):
+        raise AssertionError("not reached")
+    (tmp_path / "small.toml").write_text(SMALL)
+    refused(capsys, "run", "small.toml", "--out", "out", cwd=tmp_path, expect=("did not write", "mine.png"))
+    assert snapshot(out) == before and leftovers(tmp_path) == []
+
+    (out / "mine.png").unlink()
+    (out / "rmse.png").unlink()
+    (out / "stats.json").unlink()
+    (out / "stats.json").mkdir()  # a listed name that is no longer the file tracklab wrote
+    assert foreign_entries(out) == [MANIFEST, "stats.json"]
+    (out / "stats.json").rmdir()
+    (out / "stats.json").write_text(results_doc())
+    (out / MANIFEST).write_text("[]")  # a manifest that is not tracklab's: not a folder tracklab wrote
+    assert foreign_entries(out) == [MANIFEST]
+
+    legacy = tmp_path / "legacy"  # an older tracklab's folder, without a manifest: its names count as today
+    make_results(legacy)
+    (legacy / "nees.png").write_bytes(b"\x89PNG")
+    assert foreign_entries(legacy) == []
+    with atomic_folder(legacy) as tmp:
+        (tmp / "stats.json").write_text(results_doc(note="new"))
+    assert sorted(os.listdir(legacy)) == [MANIFEST, "stats.json"]
+
+
+def test_temporaries_carry_a_token_and_a_users_look_alike_is_never_removed(tmp_path):
+    """Temporaries are created under fresh names (.NAME.tmp-PID-TOKEN) that never are an existing
+    path, and only a path with tracklab's TOKEN is ever removed: a user's .res.tmp-<this PID>
+    beside --out res survives a write, a failed write and the clean-up of stale ones."""
+    pid = os.getpid()
+    users = {}
+    for name in (f".res.tmp-{pid}", f".res.old-{pid}", f".t.toml.tmp-{pid}"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "stats.json").write_text(results_doc())  # looks like tracklab's, is the user's
+        users[name] = snapshot(tmp_path / name)
+    old_style = tmp_path / f".res.tmp-{dead_pid()}"  # a dead process's name without the TOKEN
+    old_style.write_text("")
+    seen = []
+    with atomic_folder(tmp_path / "res") as tmp:
+        seen.append(tmp.name)
+        assert temporary_of(tmp.name) == ("res", "tmp", pid) and tmp.name.startswith(f".res.tmp-{pid}-")
+        (tmp / "stats.json").write_text(results_doc(note="new"))
+    with pytest.raises(RuntimeError), atomic_folder(tmp_path / "res") as tmp:
+        seen.append(tmp.name)
+        raise RuntimeError
+    assert seen[0] != seen[1]
+    write_text_atomically(tmp_path / "t.toml", "# written by tracklab tune\n")
+    clean_stale(tmp_path / "res")
+    for name, before in users.items():
+        assert snapshot(tmp_path / name) == before, name
+    assert old_style.exists()
+    assert json.loads((tmp_path / "res" / "stats.json").read_text())["note"] == "new"
+    assert sorted(p.name for p in tmp_path.iterdir() if temporary_of(p.name)) == []
+
+
+def test_the_longest_name_allowed_leaves_room_for_the_temporary_name(tmp_path):
+    from tracklab.output import TEMP_SUFFIX
+
+    limit = os.pathconf(tmp_path, "PC_NAME_MAX")
+    longest = "r" * (limit - 1 - TEMP_SUFFIX)
+    with atomic_folder(tmp_path / longest) as tmp:  # the temporary's name fits
+        assert len(tmp.name) <= limit
+        (tmp / "stats.json").write_text(results_doc())
+    assert check_tuned_file(tmp_path / (longest[:-5] + ".toml"), None)
+    with pytest.raises(ConfigError, match=f"at most {len(longest)} bytes"):
+        check_results_folder(tmp_path / (longest + "r"), None)
 
 
 def _mount_tmpfs(where: Path, options: str):
@@ -329,10 +429,13 @@ def test_a_signal_while_writing_leaves_old_or_complete_new_results(tmp_path, sig
     proc = subprocess.Popen([*_command(), "run", "small.toml", "--out", "out"], cwd=tmp_path, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    tmp = tmp_path / f".out.tmp-{proc.pid}"
+
+    def writing():
+        return any((t / "stats.json").exists() for t in tmp_path.glob(f".out.tmp-{proc.pid}-*"))
+
     try:
         deadline = time.monotonic() + 240
-        while not (tmp / "stats.json").exists() and proc.poll() is None and time.monotonic() < deadline:
+        while not writing() and proc.poll() is None and time.monotonic() < deadline:
             time.sleep(0.005)  # the write phase has begun: the figures follow
         assert proc.poll() is None, "the run ended before its write phase was seen"
         proc.send_signal(sig)
@@ -353,6 +456,98 @@ def test_a_signal_while_writing_leaves_old_or_complete_new_results(tmp_path, sig
         clean_stale(out)  # what the next run does first
         assert leftovers(tmp_path) == []
         assert snapshot(out) == now
+
+
+def _loaded(pid: int, library: str) -> bool:
+    """Whether the process has mapped a shared library (Linux), e.g. NumPy's, which only JAX's
+    import, inside the command's main, loads."""
+    try:
+        return library in Path(f"/proc/{pid}/maps").read_text()
+    except OSError:
+        return False
+
+
+def test_ctrl_c_at_any_moment_is_one_line_and_exit_130(tmp_path):
+    """Ctrl-C while JAX is being imported, 0.5 s and 2 s after the start, and once the program is
+    compiled (the runs and the figures under way), through python -m tracklab.cli and the console
+    script: exit 130, at most a progress line and the interrupted line on stderr, never a
+    traceback, and the results folder neither created nor replaced. (Not before the command's
+    own code runs: during the interpreter's start, site and runpy, Python's handler is in place.)"""
+    (tmp_path / "small.toml").write_text(SMALL)
+    make_results(tmp_path / "old", "previous")
+    before = snapshot(tmp_path / "old")
+    entries = [[sys.executable, "-m", "tracklab.cli"], _command()]
+    runs = []
+    for i, when in enumerate(["importing", 0.5, 2.0, "compiled"]):
+        env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+        env["TRACKLAB_CACHE_DIR"] = str(tmp_path / f"cache{i}")  # empty: compiling takes seconds
+        out = "old" if i % 2 else f"new{i}"
+        proc = subprocess.Popen([*entries[i % 2], "run", "small.toml", "--runs", "8", "--out", out], cwd=tmp_path,
+                                env=env, text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        runs.append(SimpleNamespace(proc=proc, when=when, out=out, cache=tmp_path / f"cache{i}",
+                                    start=time.monotonic(), importing=False, sent=None))
+    linux = Path("/proc/self/maps").exists()
+    try:
+        deadline = time.monotonic() + 240
+        while any(r.sent is None and r.proc.poll() is None for r in runs) and time.monotonic() < deadline:
+            for r in runs:
+                if r.sent is not None or r.proc.poll() is not None:
+                    continue
+                now = time.monotonic() - r.start
+                r.importing = r.importing or (_loaded(r.proc.pid, "_multiarray_umath") if linux else now > 0.3)
+                if r.when == "compiled":
+                    due = any((r.cache / "programs").glob("*.program"))
+                else:  # never before the command's own code runs
+                    due = r.importing and (r.when == "importing" or now >= r.when)
+                if due:
+                    r.proc.send_signal(signal.SIGINT)
+                    r.sent = now
+            time.sleep(0.002)
+        for r in runs:
+            _, r.err = r.proc.communicate(timeout=120)
+    finally:
+        for r in runs:
+            if r.proc.poll() is None:
+                r.proc.kill()
+                r.proc.communicate()
+    for r in runs:
+        what = (r.when, r.sent, r.err)
+        assert r.sent is not None, f"{r.when}: the run ended first (exit {r.proc.returncode}): {r.err}"
+        lines = r.err.strip().splitlines()
+        assert r.proc.returncode == 130, what
+        assert "Traceback" not in r.err and len(lines) <= 2 and lines[-1].startswith("interrupted:"), what
+        if r.out == "old":
+            assert snapshot(tmp_path / "old") == before, what
+        else:
+            assert not (tmp_path / r.out).exists(), what
+    assert leftovers(tmp_path) == []
+
+
+@pytest.mark.parametrize("when", ["none", "in an exit function", "held back"])
+def test_a_ctrl_c_while_the_command_exits_makes_it_exit_130(when):
+    """A SIGINT that comes once the work is done, while the command's process exits (its exit
+    functions, JAX's among them, or held back by a blocked mask), still ends it with one line
+    and exit 130; without one the process exits with the command's status."""
+    probe = f"""
+import atexit, os, signal
+from tracklab import cli, interrupts
+signal.signal(signal.SIGINT, signal.SIG_DFL)  # as a terminal starts the command
+interrupts.catch_interrupts()
+print("results written", flush=True)
+if {when!r} == "in an exit function":
+    atexit.register(os.kill, os.getpid(), signal.SIGINT)
+elif {when!r} == "held back":
+    signal.pthread_sigmask(signal.SIG_BLOCK, {{signal.SIGINT}})
+    os.kill(os.getpid(), signal.SIGINT)
+cli._end(3)
+"""
+    r = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60)
+    assert r.stdout == "results written\n"
+    if when == "none":
+        assert (r.returncode, r.stderr) == (3, "")
+    else:
+        assert (r.returncode, r.stderr) == (130, "interrupted: previous results left untouched\n")
 
 
 # --- missing statistics are missing, never 0 or nan -----------------------------------------------
@@ -422,6 +617,7 @@ def test_sweep_table_shows_missing_not_nan(tmp_path):
     assert "nan" not in md.lower() and "| 2 | KF | — | — | — | — | — | 6 |" in md
     assert "nan" not in (tmp_path / "sw" / "table.csv").read_text().lower()
     assert (tmp_path / "sw" / "sweep_rmse_pos.png").is_file()
+    assert listed(tmp_path / "sw") == sorted(set(os.listdir(tmp_path / "sw")) - {MANIFEST})  # the figures too
     doc = json.loads((tmp_path / "sw" / "sweep.json").read_text())
     assert doc[HEADER_KEY] and doc["points"][1]["filters"]["KF"]["summary"]["rmse_pos"] is None
 
@@ -435,7 +631,7 @@ def test_tune_writes_its_results_folder_again_and_keeps_a_users_file_in_it(tmp_p
     for _ in range(2):
         code, out, err = main(capsys, *args, cwd=tmp_path)
         assert code == 0, err
-    assert sorted(os.listdir(tmp_path / "rep")) == ["loss.png", "table.md", "tune.json", "tune.log"]
+    assert sorted(os.listdir(tmp_path / "rep")) == [MANIFEST, "loss.png", "table.md", "tune.json", "tune.log"]
     (tmp_path / "rep" / "notes.txt").write_text("precious")
     code, out, err = main(capsys, *args, cwd=tmp_path)
     assert code == 2 and "tracklab did not write" in err[-1] and "notes.txt" in err[-1], err

@@ -301,3 +301,25 @@ def test_a_value_and_its_half_width_are_shown_to_the_half_widths_two_digits():
     plt.close(fig)
     assert titles[0].endswith("mean over the runs 0.028 ± 0 ′")
     assert titles[1].endswith("mean over the runs 2.82046 ± 0.00040 ′")
+
+
+def test_a_percentage_is_shown_plainly_and_a_fraction_below_one_never_as_100():
+    """A fraction as a percentage: two significant digits, no exponent; 0 and 100 only for exactly
+    0 and 1 (the Wilson interval of the diverged runs reaches 100 % only when all diverged); the
+    diverged cell, the NEES-in-band column and the combined table use it."""
+    from tracklab.intervals import format_value, percent
+    from tracklab.report.tables import diverged_cell
+    from tracklab.reproduce import _cell
+
+    assert [percent(v) for v in (0, 1e-4, 0.0012, 0.12, 0.5, 1)] == ["0 %", "0.01 %", "0.12 %", "12 %", "50 %", "100 %"]
+    assert [percent(v) for v in (0.99, 0.995, 0.9997, 1 - 1e-6)] == ["99 %", "99.5 %", "99.97 %", "99.9999 %"]
+    for v in (1 - 1e-3, 1 - 1e-7, 1 - 1e-12, 0.99999, np.float64(0.9999)):
+        assert float(percent(v, sign=False)) < 100, v
+    for v in (1e-3, 1e-7, 1e-12):
+        assert 0 < float(percent(v, sign=False)), v
+    assert percent(None) == percent(float("nan")) == "—" and percent(0.5, sign=False) == "50"
+    assert not any("e" in percent(10.0 ** -k) for k in range(12))
+    wilson_all = {"summary": {"diverged": 8}, "intervals": {"diverged_fraction": list(wilson(8, 8))}}
+    assert diverged_cell(wilson_all) == "8 (68–100 %)"
+    assert diverged_cell({"summary": {"diverged": 0}, "intervals": {"diverged_fraction": [0.0, 0.0012]}}) == "0 (0–0.12 %)"
+    assert format_value(0.996, "{:.0%}") == "99.6" and _cell(1.0, "{:.0%}") == "100 %"

@@ -3,11 +3,15 @@ over localhost, give the statistics of one process; only process 0 writes and pr
 
 import json
 import os
+import re
 import socket
 import subprocess
+import time
 
 import numpy as np
+import pytest
 
+from tracklab import processes
 from tracklab.config import load_experiment
 
 from test_cli import _command
@@ -79,3 +83,64 @@ def test_a_partial_process_setting_is_refused_in_one_line(tmp_path):
     assert r.returncode == 2
     assert r.stderr.count("\n") == 1 and "coordinator" in r.stderr
     assert not (tmp_path / "results").exists()
+
+
+@pytest.mark.parametrize("kwargs, says", [
+    (dict(coordinator="localhost:99999", processes=2, process_id=0), "not in 1–65535"),
+    (dict(coordinator="localhost:notaport", processes=2, process_id=0), "is not a number"),
+    (dict(coordinator="localhost", processes=2, process_id=0), "HOST:PORT"),
+    (dict(coordinator="no-such-host.invalid:7777", processes=2, process_id=0), "cannot be resolved"),
+    (dict(coordinator="localhost:7777", processes=1, process_id=5), "must be in 0 … 0"),
+    (dict(coordinator="localhost:7777", processes=2, process_id=2), "must be in 0 … 1"),
+    (dict(coordinator="localhost:7777", processes=2, process_id=-1), "at least 0"),
+    (dict(coordinator="localhost:7777", processes=0, process_id=0), "at least 1"),
+    (dict(coordinator="localhost:7777", processes=2, process_id=1, timeout=0), "must be positive"),
+    (dict(processes=2, process_id=1), "the coordinator address (--coordinator) is missing"),
+])
+def test_process_settings_are_checked_before_anything_starts(kwargs, says, monkeypatch):
+    for name in processes.ENV.values():
+        monkeypatch.delenv(name, raising=False)
+    with pytest.raises(ValueError, match=re.escape(says)) as e:
+        processes.settings(**kwargs)
+    assert "\n" not in str(e.value)
+    assert processes.settings("localhost:7777", 1, 0) is None  # one process: nothing to start
+    assert processes.settings("[::1]:7777", 2, 1).coordinator == "[::1]:7777"
+
+
+def test_processes_that_cannot_meet_or_disagree_stop_in_one_line(tmp_path):
+    """Each fault ends every process it reaches with one line, its exit status (2: settings that
+    cannot work, 1: a process that failed) and nothing written, within the timeout: a coordinator
+    nobody runs, a peer that never comes, two processes given different run counts, and a peer
+    killed while process 0 runs. All four start at once."""
+    path = tmp_path / "exp.toml"
+    path.write_text(EXPERIMENT)
+    env = dict(os.environ, **{name: "" for name in processes.ENV.values()})
+
+    def start(port, pid, *extra, timeout=4):
+        out = tmp_path / f"out{port}"
+        return subprocess.Popen([*_command(), "run", str(path), "--no-figures", "--out", str(out), "--coordinator",
+                                 f"127.0.0.1:{port}", "--processes", "2", "--process-id", str(pid),
+                                 "--process-timeout", str(timeout), *extra], env=env, text=True,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+    ports = [_free_port() for _ in range(4)]
+    t0 = time.monotonic()
+    lone_peer = start(ports[0], 1)
+    lone_coordinator = start(ports[1], 0)
+    disagree = [start(ports[2], 0, "--runs", "100", timeout=30), start(ports[2], 1, "--runs", "300", timeout=30)]
+    killed = [start(ports[3], i, "--runs", "50000000", timeout=30) for i in (0, 1)]
+    time.sleep(12)  # both started (whatever it is doing, process 0 must stop)
+    killed[1].kill()
+    results = {name: [(p.wait(timeout=120), *p.communicate()) for p in ps] for name, ps in
+               [("lone peer", [lone_peer]), ("lone coordinator", [lone_coordinator]), ("disagree", disagree),
+                ("killed", killed[:1])]}
+    assert time.monotonic() - t0 < 100
+    want = {"lone peer": [(1, "waited 4 s for process 0")], "lone coordinator": [(1, "for process 1 of 2: never connected")],
+            "disagree": [(2, "runs (300 there, 100 in process 0) differ")] * 2, "killed": [(1, "process 0 of 2 stops")]}
+    for name, outcomes in results.items():
+        for (code, out, err), (status, says) in zip(outcomes, want[name]):
+            said = says in err or (name == "killed" and "process 1 of 2 ended" in err)  # in an exchange, or between
+            assert code == status and said, (name, code, err)
+            assert err.count("\n") == 1 and "Traceback" not in err and "@ 0x" not in err, (name, err)
+            assert "|" not in out, (name, out)  # no table printed
+    assert not [p for p in tmp_path.iterdir() if p.name != "exp.toml"]  # nothing written, nothing left behind

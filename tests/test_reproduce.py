@@ -1,5 +1,6 @@
 """tracklab reproduce and tracklab table."""
 
+import csv
 import json
 import subprocess
 import sys
@@ -119,3 +120,46 @@ def test_table_formats(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "tracklab.cli", "table", *map(str, folders), "--metrics", "nope"],
                           capture_output=True, text=True)
     assert proc.returncode == 2 and proc.stderr.startswith("error:") and "--metrics" in proc.stderr
+
+
+
+def _stats(folder, filters):
+    """A results folder whose stats.json holds ``filters`` (label -> (summary, half-widths))."""
+    folder.mkdir()
+    doc = {"name": folder.name, "runs": 8, "units": ["m", "m/s"], "wall_s": 1.5,
+           "filters": {label: {"kind": "ekf", "summary": summary, "half_width": hw,
+                               "intervals": {"diverged_fraction": [0.68, 1.0]}}
+                       for label, (summary, hw) in filters.items()}}
+    (folder / "stats.json").write_text(json.dumps(doc))
+    return folder
+
+
+def _cells(line, fmt):
+    if fmt == "csv":
+        return next(csv.reader([line]))
+    if fmt == "latex":
+        return [c.strip() for c in line.removesuffix("\\\\").split(" & ")]
+    return [c.strip() for c in line.strip().strip("|").split(" | ")]
+
+
+def test_table_shows_no_statistic_of_a_filter_with_no_healthy_run(tmp_path, monkeypatch, capsys):
+    """A filter whose runs all diverged: every statistic of it is missing in every format, as the
+    run's own table shows them, also where its stats.json holds numbers; a healthy one's are shown."""
+    from test_cli import in_process
+
+    numbers = {"rmse_pos": 12.5, "rmse_vel": 3.25, "max_err_pos": 40.0, "pred_err_rms": 20.0, "mean_err_x": 0.5,
+               "mean_err_y": -0.5, "nees": 4.5, "nees_in_bounds": 0.75, "rmse_pos_over_pcrlb": 1.25,
+               "max_track_err": 1.5, "random_err": 2.5}
+    hw = dict.fromkeys(numbers, 0.25)
+    folder = _stats(tmp_path / "r", {
+        "numbers": ({**numbers, "diverged": 8, "runs": 8}, hw),
+        "written": ({**dict.fromkeys(numbers), "diverged": 8, "runs": 8}, dict.fromkeys(hw)),  # as tracklab run writes it
+        "healthy": ({**numbers, "diverged": 0, "runs": 8}, hw)})
+    for fmt in ("md", "csv", "latex"):
+        proc = in_process("table", folder, "--format", fmt, cwd=tmp_path, monkeypatch=monkeypatch, capsys=capsys)
+        assert proc.returncode == 0 and not proc.stderr, proc.stderr
+        rows = {c[1]: c for c in (_cells(line, fmt) for line in proc.stdout.splitlines()) if len(c) > 16}
+        for label in ("numbers", "written"):
+            assert rows[label][:3] == ["r", label, "m"] and rows[label][14:17] == ["8", "8", "1.5"], (fmt, rows[label])
+            assert all(c in ("—", "") for c in rows[label][3:14] + rows[label][17:]), (fmt, rows[label])
+        assert rows["healthy"][3].startswith("12.5") and rows["healthy"][14] == "0", (fmt, rows["healthy"])

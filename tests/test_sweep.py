@@ -148,3 +148,23 @@ def test_every_axis_means_what_it_says(tmp_path, grid):
                 if isinstance(v, (int, float)):
                     np.testing.assert_allclose(got[part][k], v, rtol=1e-9, atol=1e-12, err_msg=f"{grid} at {value}: {k}")
     assert (points[0]["summary"], points[0]["half_width"]) != (points[1]["summary"], points[1]["half_width"])
+
+
+def test_a_sweep_of_three_axes_says_it_draws_no_figures(tmp_path, monkeypatch, capsys):
+    """Figures draw one or two axes: a sweep of three says, in one line on stdout beside where its
+    folder is written, which it did not draw and why (and nothing of it with --no-figures)."""
+    path = tmp_path / "exp.toml"
+    path.write_text(textwrap.dedent(EXP).replace("runs = 96", "runs = 4").replace("steps = 40", "steps = 8")
+                    .replace("window = [5, 40]", "window = [2, 8]"))
+    grid = ["--grid", "q=0.5:2:2", "--grid", "r=0.5:2:2", "--grid", "experiment.seed=0:1:2"]
+    proc = in_process("sweep", path, *grid, "--out", tmp_path / "sw", cwd=tmp_path, monkeypatch=monkeypatch,
+                      capsys=capsys)
+    assert proc.returncode == 0, proc.stderr
+    line = ("no figures: a sweep of 3 axes is written to sweep.json, table.md and table.csv only; "
+            "figures draw 1 or 2 axes")
+    assert proc.stdout.splitlines()[-2:] == [line, f"sweep written to {tmp_path / 'sw'}/"], proc.stdout
+    written = {p.name for p in (tmp_path / "sw").iterdir()}
+    assert {"sweep.json", "table.csv", "table.md"} <= written and not any(n.endswith(".png") for n in written)
+    quiet = in_process("sweep", path, *grid, "--out", tmp_path / "sw2", "--no-figures", cwd=tmp_path,
+                       monkeypatch=monkeypatch, capsys=capsys)
+    assert quiet.returncode == 0 and "no figures" not in quiet.stdout + quiet.stderr, quiet.stdout

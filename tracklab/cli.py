@@ -7,8 +7,15 @@ import sys
 from pathlib import Path
 
 from tracklab.errors import ConfigError
-from tracklab.output import raise_if_interrupted
-from tracklab.runtime import writes
+from tracklab.interrupts import raise_if_interrupted
+
+
+def writes() -> bool:
+    """``tracklab.processes.writes``, imported when first called: the command's module imports
+    nothing before ``main`` has installed its SIGINT handler but what that needs."""
+    from tracklab.processes import writes
+
+    return writes()
 
 
 def _positive_int(s):
@@ -18,6 +25,16 @@ def _positive_int(s):
         raise argparse.ArgumentTypeError(f"{s!r} is not an integer") from None
     if v < 1:
         raise argparse.ArgumentTypeError(f"{v} must be >= 1")
+    return v
+
+
+def _seconds(s):
+    try:
+        v = float(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{s!r} is not a number of seconds") from None
+    if not 0 < v < 1e6:
+        raise argparse.ArgumentTypeError(f"{v:g} must be positive (and under 10⁶ s)")
     return v
 
 
@@ -192,7 +209,7 @@ def cmd_sweep(args) -> int:
     from tracklab.output import check_results_folder
     from tracklab.config.paths import parse_grid
     from tracklab.studies.sweep import grid_points, sweep
-    from tracklab.report.sweep import runs_text, write_sweep
+    from tracklab.report.sweep import no_figures, runs_text, write_sweep
 
     exp = load_experiment(args.experiment)
     axes = []
@@ -220,6 +237,8 @@ def cmd_sweep(args) -> int:
           f"{doc['compile_s']:.1f} s of it compiling or loading the program")
     write_sweep(exp, doc, out, figures=not args.no_figures)
     print((out / "table.md").read_text(), end="")
+    if not args.no_figures and no_figures(doc):
+        print(no_figures(doc))
     print(f"sweep written to {out}/")
     return 0
 
@@ -267,6 +286,9 @@ def build_parser():
     g.add_argument("--coordinator", metavar="HOST:PORT", help="process 0's address (or TRACKLAB_COORDINATOR)")
     g.add_argument("--processes", type=_positive_int, metavar="N", help="process count (or TRACKLAB_PROCESSES)")
     g.add_argument("--process-id", type=int, metavar="I", help="this process, 0 … N-1 (or TRACKLAB_PROCESS_ID)")
+    g.add_argument("--process-timeout", type=_seconds, metavar="S",
+                   help="seconds to wait for the other processes at the start and at the end "
+                        "(default 60; or TRACKLAB_PROCESS_TIMEOUT)")
     r = sub.add_parser("run", help="run an experiment file and write its results folder", parents=[many])
     r.add_argument("experiment")
     r.add_argument("--runs", type=_positive_int, help="Monte-Carlo runs (default: the file's)")
@@ -350,37 +372,76 @@ def _compilation_cache():
 
 
 def _interrupted_exit():
+    import contextlib
     import os
 
-    from tracklab.output import written
+    from tracklab.interrupts import hold_interrupts, written
 
+    hold_interrupts()  # a second Ctrl-C cannot cut this line short
     done = written()
     what = f"{', '.join(map(str, done))} written in full before it" if done else "previous results left untouched"
-    print(f"\ninterrupted: {what}", file=sys.stderr)
-    sys.stdout.flush()
-    sys.stderr.flush()
+    end_progress = "\n" if sys.stderr.isatty() else ""  # a progress line drawn with \r is ended first
+    with contextlib.suppress(OSError, ValueError):  # a closed pipe
+        sys.stdout.flush()
+    with contextlib.suppress(OSError, ValueError):
+        print(f"{end_progress}interrupted: {what}", file=sys.stderr, flush=True)
     # the temporary folder is already gone; skip interpreter teardown, which can crash
     # while XLA's worker threads are still inside a computation
     os._exit(130)
 
 
-def main(argv=None) -> int:
-    from tracklab.output import catch_interrupts, interrupted
+def _what_runs(args) -> dict:
+    """What a process of several runs, compared between them before they start: the command, its
+    options (not the process's own, nor where process 0 writes) and the experiment file's contents."""
+    own = {"coordinator", "processes", "process_id", "process_timeout", "func", "out", "results", "experiment"}
+    what = {k: v for k, v in vars(args).items() if k not in own}
+    try:
+        what["experiment file contents"] = Path(args.experiment).read_bytes()
+    except OSError:  # the command refuses it in its own words
+        what["experiment file"] = args.experiment
+    return what
+
+
+def _end_processes(meeting, code):
+    """Meet the other processes at the end; one of them gone: one line, and this process ends now."""
+    import os
+
+    from tracklab import processes
+
+    end = processes.finish(meeting, code)
+    if end is None:
+        return
+    status, line = end
+    sys.stdout.flush()
+    if line:
+        print(line, file=sys.stderr, flush=True)
+    os._exit(status)
+
+
+def _main(argv) -> int:
+    from tracklab.interrupts import interrupted
 
     from tracklab.runtime import configure
 
     args = build_parser().parse_args(argv)
+    raise_if_interrupted()  # one that came while JAX and the registries were imported
     configure()  # one CPU device per core, single-threaded Eigen, 64-bit mode (before JAX starts)
+    meeting = None
     if hasattr(args, "processes"):
-        from tracklab.runtime import start_processes
+        from tracklab import processes
 
         try:
-            start_processes(args.coordinator, args.processes, args.process_id)
+            several = processes.settings(args.coordinator, args.processes, args.process_id, args.process_timeout)
+            if several is not None or processes.cluster_size() > 1:
+                processes.quiet_runtime_logs()
+            meeting = processes.start(several, _what_runs(args))
         except ValueError as e:
             print(f"error: tracklab {args.command}: {e}", file=sys.stderr)
             return 2
+        except processes.ProcessError as e:
+            print(f"error: tracklab {args.command}: {e}", file=sys.stderr)
+            return e.exit_status
     _compilation_cache()
-    catch_interrupts()
     try:
         code = args.func(args)
     except ConfigError as e:
@@ -397,9 +458,98 @@ def main(argv=None) -> int:
         code = 1
         where = f" ({e.filename})" if e.filename else ""
         print(f"error: cannot write{where}: {e.strerror or e} (previous results left untouched)", file=sys.stderr)
+    except Exception as e:  # several processes: an exchange of sums that failed (a process gone)
+        if meeting is None:
+            raise
+        code = 1
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0][:300]
+        print(f"error: tracklab {args.command}: process {meeting.settings.process_id} of {meeting.settings.processes} "
+              f"stops (nothing written): {first}", file=sys.stderr)
+    if meeting is not None:
+        _end_processes(meeting, code)
     if interrupted():  # a Ctrl-C whose KeyboardInterrupt was swallowed (e.g. inside a callback)
         _interrupted_exit()
     return code
+
+
+def _guarded(argv) -> int:
+    """``_main``; an exception of any kind after a SIGINT (the interrupt itself, or what it turned
+    into inside a library) ends the command in one line, exit 130."""
+    from tracklab.interrupts import interrupted
+
+    try:
+        code = _main(argv)
+    except BaseException as e:
+        if interrupted() or isinstance(e, KeyboardInterrupt):
+            _interrupted_exit()
+        raise
+    if interrupted():
+        _interrupted_exit()
+    return code
+
+
+def _end(code):
+    """End the command's process with ``code``, or with exit 130 and one line if a SIGINT came
+    at any moment before: SIGINT is only recorded from here on, the exit functions run (JAX's,
+    the processes'), then SIGINT is blocked and the record and the pending signals are read
+    last, and the process exits without the interpreter's teardown."""
+    import atexit
+    import contextlib
+    import os
+    import signal
+
+    from tracklab.interrupts import hold_interrupts, interrupted
+
+    hold_interrupts()
+    if code is None:
+        code = 0
+    elif not isinstance(code, int):  # sys.exit("message")
+        print(code, file=sys.stderr)
+        code = 1
+    try:
+        sys.stdout.flush()
+    except (OSError, ValueError):  # a closed pipe (| head): as Python's own exit, 120
+        code = code or 120
+    with contextlib.suppress(OSError, ValueError):
+        sys.stderr.flush()
+    atexit._run_exitfuncs()
+    pending = False
+    if hasattr(signal, "pthread_sigmask") and hasattr(signal, "sigpending"):
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        pending = signal.SIGINT in signal.sigpending()
+    if interrupted() or pending:
+        _interrupted_exit()
+    for stream in (sys.stdout, sys.stderr):  # what the exit functions printed
+        with contextlib.suppress(OSError, ValueError):
+            stream.flush()
+    os._exit(code)
+
+
+def main(argv=None) -> int:
+    """The ``tracklab`` command; ``argv``: its arguments (default: the command line's).
+
+    Ctrl-C: the SIGINT handler is installed first (``tracklab.interrupts``), before anything
+    heavy is imported, and a SIGINT at any moment ends the command with one line on stderr
+    ("interrupted: …") and exit 130: never a traceback, never a finished run with exit 0.
+    Without ``argv`` (the console script, ``python -m tracklab.cli``) ``main`` ends the process
+    itself, so that a SIGINT that arrives while it exits counts too; with ``argv`` it returns the
+    exit status (argparse's refusals raise SystemExit)."""
+    try:
+        from tracklab.interrupts import catch_interrupts
+
+        put_back = catch_interrupts()
+        if argv is not None:
+            try:
+                return _guarded(argv)
+            finally:
+                put_back()  # inside another program (a test): its own SIGINT handling again
+        try:
+            code = _guarded(None)
+        except SystemExit as e:  # argparse: --help, a bad argument
+            code = e.code
+    except KeyboardInterrupt:  # Python's own handler's, before catch_interrupts replaced it
+        _interrupted_exit()
+    _end(code)
 
 
 if __name__ == "__main__":

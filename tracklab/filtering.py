@@ -7,8 +7,16 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
+from tracklab.checks import (
+    check_covariance,
+    check_filter,
+    check_finite,
+    check_measurements,
+    check_positive,
+    check_precision,
+    numeric,
+)
 from tracklab.filters.core import Filter, Meas, Prior, trace_problem
 from tracklab.montecarlo.runner import in_precision
 from tracklab.pytree import like
@@ -32,26 +40,47 @@ def run_filter(flt: Filter, z, *, x0, P0, params=None, dt: float = 1.0, precisio
 
     ``z`` is (T, m) or (N, T, m); a row of NaN is a missed detection
     (predict-only). ``x0, P0`` is the prior one sample period before ``z[0]``, in the
-    filter's own state order (its ``layout``);
-    each step predicts, then updates with ``z[k]``. ``precision``: "float64" (whatever
-    JAX's global 64-bit mode) or "float32"; the parameters and inputs are cast to it (a
-    filter's own constants follow the mode it was built in: build it inside
+    filter's own state order (its ``layout``): (n,) and (n, n), or per recording (N, n) and
+    (N, n, n) with N that of ``z``; each step predicts, then updates with ``z[k]``. ``params``:
+    the filter's parameters (None: ``flt.params``). ``dt``: the sample period. ``precision``:
+    "float64" (whatever JAX's global 64-bit mode) or "float32"; the parameters and inputs are
+    cast to it (a filter's own constants follow the mode it was built in: build it inside
     ``jax.enable_x64(False)`` for single precision throughout).
+
+    Refused before anything compiles, in one line naming the argument: ``flt`` not a
+    ``tracklab.Filter`` (``TypeError``); ``z`` with a ±inf (NaN is a missed detection) or of
+    the wrong shape; ``x0`` not finite; ``P0`` (each of a batch) not finite, not symmetric (to
+    1e-9 of its largest entry) or not positive definite; ``dt`` not a finite number > 0;
+    ``precision`` neither "float64" nor "float32"; a filter that does not trace at these shapes
+    (``ValueError``).
     """
-    if np.ndim(z) not in (2, 3):
-        raise ValueError(f"run_filter: z has shape {np.shape(z)}: expected (T, m) or (N, T, m)")
-    n = np.shape(x0)[-1] if np.ndim(x0) else 0
-    if np.ndim(x0) not in (1, 2) or np.shape(P0)[-2:] != (n, n) or np.ndim(P0) not in (2, 3):
-        raise ValueError(f"run_filter: x0 {np.shape(x0)} and P0 {np.shape(P0)}: expected (n,) or (N, n), and (n, n) "
+    where = "tracklab.run_filter"
+    check_filter(where, "flt", flt)
+    precision = check_precision(where, precision)
+    dt = check_positive(where, "dt", dt)
+    z = check_measurements(where, "z", z)
+    if z.ndim not in (2, 3):
+        raise ValueError(f"{where}: z has shape {z.shape}: expected (T, m) or (N, T, m)")
+    xs, Ps = numeric(where, "x0", x0).shape, numeric(where, "P0", P0).shape
+    n = xs[-1] if xs else 0
+    if len(xs) not in (1, 2) or len(Ps) not in (2, 3) or Ps[-2:] != (n, n):
+        raise ValueError(f"{where}: x0 {xs} and P0 {Ps}: expected (n,) or (N, n), and (n, n) "
                          f"or (N, n, n), in the filter's own state order")
-    why = trace_problem(flt, n, np.shape(z)[-1], params, precision, outputs=False)
+    runs = z.shape[0] if z.ndim == 3 else None
+    for name, shape in (("x0", xs[:-1]), ("P0", Ps[:-2])):
+        if shape and shape[0] != runs:
+            raise ValueError(f"{where}: {name} has shape {xs if name == 'x0' else Ps}, z {z.shape}: a prior per "
+                             f"recording needs z as (N, T, m) with the same N")
+    check_finite(where, "x0", x0)
+    check_covariance(where, "P0", P0)
+    why = trace_problem(flt, n, z.shape[-1], params, precision, outputs=False)
     if why:
-        raise ValueError(f"run_filter: the filter {why}")
+        raise ValueError(f"{where}: the filter {why}")
     with jax.enable_x64(precision == "float64"):
         dtype = jnp.float64 if precision == "float64" else jnp.float32
         params = in_precision(flt.params if params is None else params, precision)
         z, x0, P0 = (jnp.asarray(a, dtype) for a in (z, x0, P0))
-        out = _run_filter_jit(flt.init, flt.step, params, z, x0, P0, float(dt), z.ndim == 3)
+        out = _run_filter_jit(flt.init, flt.step, params, z, x0, P0, dt, z.ndim == 3)
     return FilterResult(*out, layout=flt.layout)
 
 

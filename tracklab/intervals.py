@@ -137,12 +137,30 @@ def missing(v) -> bool:
     return v is None or (isinstance(v, (float, np.floating)) and not math.isfinite(v))
 
 
+def percent(fraction, sign: bool = True) -> str:
+    """A fraction as a plain percentage: ``0 %``, ``0.012 %``, ``12 %``, ``99.97 %``, ``100 %``
+    (``sign=False``: without " %"); "—" for a missing value. Two significant digits, and as many
+    more decimals as keep a fraction just below 1 from showing as 100 (and one just above 0
+    from showing as 0); never an exponent."""
+    if missing(fraction):
+        return "—"
+    p = 100.0 * float(fraction)
+    d = 0
+    if p != 0:
+        d = max(0, 1 - math.floor(math.log10(abs(p))))
+        if 50 < p < 100:
+            d = max(d, -math.floor(math.log10(100 - p)))
+    s = f"{p:.{d}f}"
+    s = s.rstrip("0").rstrip(".") if "." in s else s
+    return s + " %" if sign else s
+
+
 def format_value(v, spec) -> str:
-    """A table cell: ``spec`` (a percentage without its sign), or "—" for a missing value."""
+    """A table cell: ``spec`` (a ``%`` spec: the plain percentage without its sign, ``percent``),
+    or "—" for a missing value."""
     if missing(v):
         return "—"
-    s = spec.format(v)
-    return s.rstrip("%") if spec.endswith("%}") else s
+    return percent(v, sign=False) if spec.endswith("%}") else spec.format(v)
 
 
 def with_half_width(v, hw, spec="{:.2f}", sign=False) -> str:

@@ -1,28 +1,40 @@
 """Where results go: output paths checked before anything runs, folders replaced atomically.
 
-tracklab writes only where it may:
+tracklab writes only where it may, and removes only what it wrote:
 
 * a results folder (``run``, ``sweep``, ``reproduce``) goes to a path that does not exist
   yet, an empty folder, or a folder tracklab wrote before: one holding ``stats.json``,
-  ``sweep.json`` or ``tune.json`` with tracklab's header and nothing but the files tracklab writes there.
-  Anything else (a folder of the user's, the working folder, the experiment's own folder)
-  is refused with one line before anything compiles;
+  ``sweep.json`` or ``tune.json`` with tracklab's header and nothing but the files tracklab
+  wrote there. Every results folder holds a manifest, ``.tracklab-files`` (JSON: tracklab's
+  header and ``"files"``, the names written), and only the files it lists count as
+  tracklab's: a file of the user's dropped in, a figure's name included, makes it a folder
+  tracklab did not write. A folder an older tracklab wrote has no manifest: there the names
+  tracklab writes (``RESULTS_FILES`` and ``*.png``) count. Anything else (a folder of the
+  user's, the working folder, the experiment's own folder) is refused with one line before
+  anything compiles, so the replacement below never removes a file tracklab did not write;
 * a tuned experiment file (``tune --out``) goes to a new path or replaces a file that
   starts with tracklab's header line;
 * the path must be creatable and writable, its name short enough for the temporary name
-  written beside it (``.NAME.tmp-PID``), which is probed before the work starts.
+  written beside it, which is probed before the work starts.
 
-A new folder is written under the temporary name and swapped into place in one step:
-``renameat2(RENAME_EXCHANGE)`` on Linux (``renamex_np(RENAME_SWAP)`` on macOS), so the
-path holds either the previous results or the complete new ones at every instant. Where
-the file system cannot exchange, the old folder is renamed aside first
-(``.NAME.old-PID``) and restored by the next run if a kill fell between the two renames.
-Temporary folders of processes that no longer exist are removed by the next run.
+Temporaries: a new folder or file is written beside its destination under a temporary name,
+``.NAME.tmp-PID-TOKEN``, created exclusively (``mkdir``, ``O_EXCL``), so it never is an
+existing path. TOKEN is 8 random hexadecimal digits followed by 8 of a digest of the rest of
+the name: tracklab's mark, which no name of the user's carries by chance. A path without a
+valid mark is never removed nor moved, whatever its name (a user's ``.res.tmp-1234`` beside
+``res``, or a temporary an older tracklab left).
 
-Ctrl-C: ``catch_interrupts`` (installed by the command line) records every SIGINT, even
-one whose ``KeyboardInterrupt`` was swallowed inside a callback, and the swap checks the
-record first, with SIGINT blocked across the swap itself: an interrupted command leaves
-the previous results or the complete new ones, and exits 130.
+A new folder is swapped into place in one step: ``renameat2(RENAME_EXCHANGE)`` on Linux
+(``renamex_np(RENAME_SWAP)`` on macOS), so the path holds either the previous results or the
+complete new ones at every instant. Where the file system cannot exchange, the old folder is
+renamed aside first (``.NAME.old-PID-TOKEN``) and restored by the next run if a kill fell
+between the two renames. Marked temporaries of processes that no longer exist, holding only
+what tracklab writes, are removed by the next run into the same path.
+
+Ctrl-C (``tracklab.interrupts``): every SIGINT is recorded, even one whose
+``KeyboardInterrupt`` was swallowed inside a callback, and the swap checks the record first,
+with SIGINT blocked across the swap itself: an interrupted command leaves the previous results
+or the complete new ones, and exits 130.
 """
 
 from __future__ import annotations
@@ -30,81 +42,28 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import errno
+import hashlib
 import json
 import os
 import re
 import shutil
-import signal
 import sys
 import tempfile
 from pathlib import Path
 
+from tracklab import __version__
 from tracklab.errors import ConfigError
+from tracklab.interrupts import note_written, raise_if_interrupted, sigint_blocked
 
 RESULTS_DOCUMENTS = ("stats.json", "sweep.json", "tune.json")  # the file that marks a tracklab results folder
 RESULTS_FILES = frozenset(RESULTS_DOCUMENTS + ("table.md", "table.csv", "tune.log"))  # and the figures, *.png
+MANIFEST = ".tracklab-files"  # in every results folder: the names of the files tracklab wrote there
 HEADER_KEY = "tracklab_version"  # the first key of every document tracklab writes
 TUNED_HEADER = "# written by tracklab tune"  # the first line of a tuned experiment file
 TABLE_BEGIN, TABLE_END = "<!-- tracklab table: begin -->", "<!-- tracklab table: end -->"  # in a results README
 _PID_WIDTH = 7  # /proc/sys/kernel/pid_max is at most 2**22: seven digits
-
-_interrupted = False
-_written: list[Path] = []
-
-
-# --- Ctrl-C --------------------------------------------------------------------------------
-
-
-def _on_sigint(signum, frame):
-    global _interrupted
-    _interrupted = True
-    f = frame
-    while f is not None:  # inside a garbage-collection callback an exception is only printed ("Exception
-        if f.f_code.co_name == "_xla_gc_callback":  # ignored in …", a traceback): the run stops at the
-            return  # next raise_if_interrupted instead, between chunks
-        f = f.f_back
-    raise KeyboardInterrupt
-
-
-def catch_interrupts():
-    """Record every SIGINT (the command line calls this once; a library user need not)."""
-    global _interrupted
-    _interrupted = False
-    _written.clear()
-    try:
-        if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
-            signal.signal(signal.SIGINT, _on_sigint)
-    except ValueError:  # not the main thread: its SIGINT is the main thread's business
-        pass
-
-
-def interrupted() -> bool:
-    """Whether a SIGINT arrived since ``catch_interrupts``."""
-    return _interrupted
-
-
-def written() -> list[Path]:
-    """The outputs put in place since ``catch_interrupts``."""
-    return list(_written)
-
-
-def raise_if_interrupted():
-    """KeyboardInterrupt if a SIGINT was recorded (its own may have been swallowed): long loops
-    call this between chunks so that Ctrl-C stops them."""
-    if _interrupted:
-        raise KeyboardInterrupt
-
-
-@contextlib.contextmanager
-def _sigint_blocked():
-    can = hasattr(signal, "pthread_sigmask")
-    if can:
-        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-    try:
-        yield
-    finally:
-        if can:
-            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+_RANDOM_DIGITS = _CHECK_DIGITS = 8  # a temporary's TOKEN: random hexadecimal digits, then a digest's
+TEMP_SUFFIX = len(".tmp-") + _PID_WIDTH + len("-") + _RANDOM_DIGITS + _CHECK_DIGITS  # after ".NAME"
 
 
 # --- what a path is -------------------------------------------------------------------------
@@ -144,10 +103,46 @@ def is_results_document(path: Path) -> bool:
     return HEADER_KEY in doc or ("experiment" in doc and ("filters" in doc or "points" in doc))
 
 
-def _not_results_files(folder: Path, entries) -> list[str]:
-    """The entries that are not files of the names tracklab writes into a results folder."""
-    return [e for e in entries
-            if not ((e in RESULTS_FILES or e.endswith(".png")) and (folder / e).is_file() and not (folder / e).is_symlink())]
+def _plain_file(path: Path) -> bool:
+    return path.is_file() and not path.is_symlink()
+
+
+def listed_files(folder: Path) -> frozenset[str] | None:
+    """The names a results folder's manifest lists; None where it has none (an older tracklab's
+    folder, or a temporary cut short) or one that is not tracklab's."""
+    path = folder / MANIFEST
+    if not os.path.lexists(path):
+        return None
+    try:
+        with open(path, "rb") as fh:
+            doc = json.loads(fh.read(1 << 20))
+    except (OSError, ValueError, RecursionError):
+        return None
+    files = doc.get("files") if isinstance(doc, dict) and HEADER_KEY in doc else None
+    if not isinstance(files, list) or not all(isinstance(f, str) for f in files):
+        return None
+    return frozenset(files)
+
+
+def _not_written(folder: Path, entries, listed) -> list[str]:
+    """The entries that are not plain files tracklab wrote into a results folder: those its
+    manifest lists (``listed``), or without one the names tracklab writes there."""
+    def ours(e):
+        if e == MANIFEST:
+            named = listed is not None
+        elif listed is not None:
+            named = e in listed
+        else:
+            named = e in RESULTS_FILES or e.endswith(".png")
+        return named and _plain_file(folder / e)
+
+    return [e for e in entries if not ours(e)]
+
+
+def _write_manifest(folder: Path):
+    """List every file now in ``folder`` (what tracklab wrote into its temporary folder) in its manifest."""
+    names = sorted(e for e in os.listdir(folder) if e != MANIFEST)
+    (folder / MANIFEST).write_text(json.dumps({HEADER_KEY: __version__, "files": names}) + "\n")
 
 
 def _results_document_begun(path: Path) -> bool:
@@ -165,7 +160,7 @@ def foreign_entries(folder: Path) -> list[str]:
     docs = [e for e in entries if e in RESULTS_DOCUMENTS]
     if not docs or not all(is_results_document(folder / d) for d in docs):
         return entries
-    return _not_results_files(folder, entries)
+    return _not_written(folder, entries, listed_files(folder))
 
 
 def _inside(a: Path, b: Path) -> bool:
@@ -199,7 +194,7 @@ def _check_names(path: Path, file, field, value, suffix_len):
     if need > limit:
         raise ConfigError(file, field, value,
                           f"its name must be at most {limit - 1 - suffix_len} bytes (tracklab writes beside it "
-                          f"under .NAME.tmp-PID first)")
+                          f"under .NAME.tmp-PID-TOKEN first)")
 
 
 def _resolve(out, file, field) -> Path:
@@ -229,6 +224,7 @@ def check_results_folder(out, file, field="--out") -> Path:
 
     ``file``: the experiment file (its folder may not be the output).
     """
+    raise_if_interrupted()  # before anything is checked, compiled or written
     value = str(out)
     real = _resolve(out, file, field)
     cwd = _real(os.getcwd())
@@ -243,6 +239,7 @@ def check_results_parent(out, experiments, field="--out") -> Path:
     """The real path of the folder ``reproduce`` writes its results folders and README.md into:
     new, empty, or one holding a README.md with tracklab's table markers (a results folder of
     tracklab's); never the working folder, one above it, or the experiments' folder."""
+    raise_if_interrupted()  # before anything is checked, compiled or written
     value = str(out)
     real = _resolve(out, experiments, field)
     if _inside(_real(os.getcwd()), real):
@@ -275,13 +272,14 @@ def _check_folder_contents(real: Path, file, field, value) -> Path:
             raise ConfigError(file, field, value,
                               f"is a folder tracklab did not write (it holds {shown}): name a new or empty folder, "
                               f"or a results folder of tracklab's")
-    _check_names(real, file, field, value, len(".tmp-") + _PID_WIDTH)
+    _check_names(real, file, field, value, TEMP_SUFFIX)
     _probe(real.parent, file, field, value)
     return real
 
 
 def check_tuned_file(out, file, field="--out") -> Path:
     """The real path of a tuned experiment file to be written at ``out``, or ConfigError."""
+    raise_if_interrupted()  # before anything is checked, compiled or written
     value = str(out)
     real = _resolve(out, file, field)
     if real.exists():
@@ -295,36 +293,72 @@ def check_tuned_file(out, file, field="--out") -> Path:
         if not first.startswith(TUNED_HEADER.encode()):
             raise ConfigError(file, field, value,
                               "exists and was not written by tracklab tune: name a new file, or one tune wrote")
-    _check_names(real, file, field, value, len(".tmp-") + _PID_WIDTH)
+    _check_names(real, file, field, value, TEMP_SUFFIX)
     _probe(real.parent, file, field, value)
     return real
 
 
 # --- writing -------------------------------------------------------------------------------
 
-_TEMP_RE = re.compile(r"^\.(?P<name>.+)\.(?P<what>tmp|old)-(?P<pid>\d+)$")
+_TEMP_RE = re.compile(r"\.(?P<name>.+)\.(?P<what>tmp|old)-(?P<pid>[0-9]+)-(?P<random>[0-9a-f]{%d})(?P<check>[0-9a-f]{%d})"
+                      % (_RANDOM_DIGITS, _CHECK_DIGITS), re.DOTALL)
+
+
+def _check_digits(name: str, what: str, pid: str, random: str) -> str:
+    """The second half of a temporary's TOKEN: a digest of the rest of its name."""
+    text = b"\0".join([b"tracklab temporary", os.fsencode(name), what.encode(), pid.encode(), random.encode()])
+    return hashlib.sha256(text).hexdigest()[:_CHECK_DIGITS]
+
+
+def temporary_name(name: str, what: str = "tmp", pid: int | None = None) -> str:
+    """A fresh ``.NAME.tmp-PID-TOKEN`` (``what``: tmp, or old for a folder set aside; ``pid``:
+    this process's by default)."""
+    pid, random = str(os.getpid() if pid is None else pid), os.urandom(_RANDOM_DIGITS // 2).hex()
+    return f".{name}.{what}-{pid}-{random}{_check_digits(name, what, pid, random)}"
+
+
+def temporary_of(entry: str):
+    """(the output's name, tmp or old, the process id) of a name tracklab gave a temporary (its
+    TOKEN checked), or None for any other name."""
+    m = _TEMP_RE.fullmatch(entry)
+    if m is None or m["check"] != _check_digits(m["name"], m["what"], m["pid"], m["random"]):
+        return None
+    return m["name"], m["what"], int(m["pid"])
+
+
+def _new_temporary(out: Path, create, what="tmp") -> Path:
+    """``create(path)`` at a fresh temporary name beside ``out``; ``create`` fails on an existing path."""
+    for _ in range(100):
+        path = out.parent / temporary_name(out.name, what)
+        try:
+            create(path)
+            return path
+        except FileExistsError:  # a name already taken: draw another
+            continue
+    raise FileExistsError(errno.EEXIST, "no free temporary name", str(out.parent))
 
 
 def clean_stale(out: Path):
-    """Remove temporary folders beside ``out`` left by processes that no longer exist; an
-    ``.old`` folder of a dead process is put back if ``out`` itself is missing."""
+    """Remove the temporaries beside ``out`` left by processes that no longer exist: those that
+    carry tracklab's TOKEN and hold only what tracklab writes; an ``.old`` folder of a dead
+    process is put back if ``out`` itself is missing."""
     parent = out.parent
     try:
         entries = os.listdir(parent)
     except OSError:
         return
     for e in entries:
-        m = _TEMP_RE.match(e)
-        if not m or m["name"] != out.name or int(m["pid"]) == os.getpid() or _pid_alive(int(m["pid"])):
+        t = temporary_of(e)
+        if t is None or t[0] != out.name or t[2] == os.getpid() or _pid_alive(t[2]):
             continue
         path = parent / e
         try:
-            if not _written_by_tracklab(path):  # a look-alike of the user's: never touched
+            if not _written_by_tracklab(path):  # a file of the user's in it: never touched
                 continue
-            if m["what"] == "old" and not os.path.lexists(out):
+            if t[1] == "old" and not os.path.lexists(out):
                 os.rename(path, out)
                 continue
-            if path.is_dir() and not path.is_symlink():
+            if path.is_dir():
                 shutil.rmtree(path)
             else:
                 os.remove(path)
@@ -334,13 +368,14 @@ def clean_stale(out: Path):
 
 def _written_by_tracklab(path: Path) -> bool:
     """Whether a temporary left beside an output holds only what tracklab writes: a folder with
-    nothing but results files (possibly cut short), or a tuned file or results README."""
+    nothing but the files its manifest lists, or results files (possibly cut short), or a tuned
+    file or results README."""
     if path.is_symlink():
         return False
     if path.is_dir():  # possibly cut short: no document yet, or an empty one
         entries = os.listdir(path)
-        return not _not_results_files(path, entries) and all(_results_document_begun(path / d)
-                                                             for d in entries if d in RESULTS_DOCUMENTS)
+        return not _not_written(path, entries, listed_files(path)) and all(
+            _results_document_begun(path / d) for d in entries if d in RESULTS_DOCUMENTS)
     with open(path, "rb") as fh:
         head = fh.read(1 << 16)
     return not head or head.startswith(TUNED_HEADER.encode()) or TABLE_BEGIN.encode() in head
@@ -368,6 +403,16 @@ def _exchange(a: Path, b: Path) -> bool:
     raise OSError(err, os.strerror(err), str(b))
 
 
+def _rename_aside(out: Path) -> Path:
+    """Rename ``out`` to a fresh ``.NAME.old-PID-TOKEN`` beside it."""
+    def move(path):
+        if os.path.lexists(path):
+            raise FileExistsError(errno.EEXIST, "exists", str(path))
+        os.rename(out, path)
+
+    return _new_temporary(out, move, "old")
+
+
 def _put_in_place(tmp: Path, out: Path):
     """Make the complete folder ``tmp`` the folder ``out``; the previous one is removed."""
     try:
@@ -379,8 +424,7 @@ def _put_in_place(tmp: Path, out: Path):
     if _exchange(tmp, out):
         shutil.rmtree(tmp, ignore_errors=True)  # now the previous results
         return
-    old = out.parent / f".{out.name}.old-{os.getpid()}"
-    os.rename(out, old)
+    old = _rename_aside(out)
     os.rename(tmp, out)
     shutil.rmtree(old, ignore_errors=True)
 
@@ -388,24 +432,29 @@ def _put_in_place(tmp: Path, out: Path):
 @contextlib.contextmanager
 def atomic_folder(out, file=None, field="--out"):
     """Yield an empty temporary folder beside ``out`` that replaces ``out`` when the block
-    completes (and is removed if it does not). ``out`` is checked again first."""
+    completes (and is removed if it does not), with its manifest listing every file written
+    into it. ``out`` is checked again first."""
     out = check_results_folder(out, file, field)
     out.parent.mkdir(parents=True, exist_ok=True)
     clean_stale(out)
-    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
+    tmp = _new_temporary(out, os.mkdir)
     try:
         yield tmp
+        _write_manifest(tmp)
         raise_if_interrupted()
         if os.path.isdir(out) and foreign_entries(out):  # someone else's folder appeared meanwhile
             raise ConfigError(file, field, str(out), "became a folder tracklab did not write while it ran")
-        with _sigint_blocked():
+        with sigint_blocked():
             _put_in_place(tmp, out)
-            _written.append(out)
+            note_written(out)
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        with sigint_blocked():  # a second Ctrl-C does not cut the clean-up short
+            shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def _create_file(path: Path):
+    os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
 
 
 def write_text_atomically(path, text: str, verify=None):
@@ -414,16 +463,16 @@ def write_text_atomically(path, text: str, verify=None):
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     clean_stale(path)
-    tmp = path.parent / f".{path.name}.tmp-{os.getpid()}"
+    tmp = _new_temporary(path, _create_file)
     try:
         tmp.write_text(text)
         if verify is not None:
             verify(tmp)
         raise_if_interrupted()
-        with _sigint_blocked():
+        with sigint_blocked():
             os.replace(tmp, path)
-            _written.append(path)
+            note_written(path)
     except BaseException:
-        with contextlib.suppress(OSError):
+        with sigint_blocked(), contextlib.suppress(OSError):
             os.remove(tmp)
         raise

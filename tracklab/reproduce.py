@@ -18,7 +18,7 @@ from pathlib import Path
 from tracklab.config import load_experiment
 from tracklab.config.paths import parse_grid
 from tracklab.errors import ConfigError
-from tracklab.intervals import with_half_width
+from tracklab.intervals import percent, with_half_width
 from tracklab.output import TABLE_BEGIN as BEGIN  # the results README's table markers
 from tracklab.output import TABLE_END as END
 from tracklab.output import (
@@ -93,20 +93,37 @@ def _cell(v, fmt):
         return f"{v:.2f}" if abs(v) >= 1 or v == 0 else f"{v:.3g}"
     if fmt == "{:d}":
         return str(int(v))
+    if fmt.endswith("%}"):
+        return percent(v)
     return fmt.format(v)
+
+
+FACTS = ("unit", "diverged", "runs", "wall_s")  # the metrics that are not statistics over the healthy runs
+
+
+def no_healthy_run(summary) -> bool:
+    """Whether a filter's summary says no run of it stayed healthy: every run diverged (or lost
+    lock), or none was healthy throughout (``healthy_runs`` 0)."""
+    runs, diverged = summary.get("runs"), summary.get("diverged")
+    if _number(summary.get("healthy_runs")) and summary["healthy_runs"] == 0:
+        return True
+    return _number(runs) and _number(diverged) and runs > 0 and diverged >= runs
 
 
 def combined_rows(folders, metrics=DEFAULT_METRICS, docs=None, half_widths=None):
     """One row per filter of every folder: [folder, label, value per metric]; ``half_widths``, a
-    list, receives each row's half-widths per metric (None where the folder holds none)."""
+    list, receives each row's half-widths per metric (None where the folder holds none). A filter
+    with no healthy run has every statistic missing (None), whatever numbers its summary holds."""
     rows = []
     for folder, doc in zip(folders, docs or [read_stats(f) for f in folders]):
         for label, f in doc["filters"].items():
             values = dict(f["summary"], wall_s=doc.get("wall_s"), unit=doc.get("units", ["m"])[0])
-            rows.append([Path(folder).name, label] + [values.get(m) for m in metrics])
+            none = no_healthy_run(f["summary"])
+            shown = [m for m in metrics if not none or m in FACTS]
+            rows.append([Path(folder).name, label] + [values.get(m) if m in shown else None for m in metrics])
             if half_widths is not None:
                 hw = f.get("half_width") if isinstance(f.get("half_width"), dict) else {}
-                half_widths.append([hw.get(m) if _number(hw.get(m)) else None for m in metrics])
+                half_widths.append([hw.get(m) if m in shown and _number(hw.get(m)) else None for m in metrics])
     return rows
 
 

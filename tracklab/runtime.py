@@ -24,10 +24,7 @@ The XLA flags are read when JAX starts its CPU backend, so they can only be set 
 the first computation; a flag XLA_FLAGS already names is left as it is, and it also wins over a
 world's own compiler options, which only the flags ``configure`` added give way to.
 
-``start_processes()`` joins a run of several processes (one per host or per GPU) through
-JAX's own multi-process runtime (``jax.distributed``): the Monte-Carlo runner then gives
-each process its share of every chunk of runs and combines the processes' sums once per
-chunk; only process 0 writes results (``writes()``). It too must come before the first
+A run of several processes (``tracklab.processes``) must also start before the first
 computation.
 
 What float64 needs: the runner traces and runs every experiment in the precision asked
@@ -106,69 +103,3 @@ def configure(*, cpu_devices: int | None = None, eigen_threads: bool = False, fu
                            f"called: call it before any JAX computation to get {cpu_devices}")
     return {"xla_flags": os.environ.get("XLA_FLAGS", ""), "float64": bool(jax.config.jax_enable_x64),
             "backend_started": started}
-
-
-ENV = {"coordinator": "TRACKLAB_COORDINATOR", "processes": "TRACKLAB_PROCESSES", "process_id": "TRACKLAB_PROCESS_ID"}
-
-
-def cluster_size() -> int:
-    """The processes a Slurm or Open MPI launch started (1 outside one): where JAX finds the
-    coordinator, the process count and this process's id by itself."""
-    for var in ("SLURM_NTASKS", "OMPI_COMM_WORLD_SIZE"):
-        try:
-            n = int(os.environ.get(var, "1"))
-        except ValueError:
-            continue
-        if n > 1:
-            return n
-    return 1
-
-
-def start_processes(coordinator: str | None = None, processes: int | None = None,
-                    process_id: int | None = None) -> int:
-    """Join a multi-process run through ``jax.distributed``; returns the process count.
-
-    Each setting comes from its argument, else from ``TRACKLAB_COORDINATOR`` (host:port of
-    process 0), ``TRACKLAB_PROCESSES`` and ``TRACKLAB_PROCESS_ID``; without any, under Slurm or
-    Open MPI with more than one task JAX detects them itself; otherwise nothing is started (one
-    process). CPU processes exchange their sums over TCP (gloo); GPUs use JAX's own collectives.
-    """
-    coordinator = coordinator or os.environ.get(ENV["coordinator"]) or None
-    processes = processes if processes is not None else _env_int("processes")
-    process_id = process_id if process_id is not None else _env_int("process_id")
-    given = [v is not None for v in (coordinator, processes, process_id)]
-    if any(given) and not all(given):
-        raise ValueError("a multi-process run needs the coordinator address, the process count and this "
-                         "process's id (options or TRACKLAB_COORDINATOR, TRACKLAB_PROCESSES, TRACKLAB_PROCESS_ID)")
-    if not any(given) and cluster_size() == 1:
-        return 1
-    if all(given) and processes == 1:
-        return 1
-    import jax
-
-    jax.config.update("jax_cpu_collectives_implementation", "gloo")
-    if all(given):
-        if not 0 <= process_id < processes:
-            raise ValueError(f"process id {process_id} must be in [0, {processes})")
-        jax.distributed.initialize(coordinator, num_processes=processes, process_id=process_id)
-    else:
-        jax.distributed.initialize()
-    return jax.process_count()
-
-
-def _env_int(name):
-    v = os.environ.get(ENV[name])
-    if v is None or v == "":
-        return None
-    try:
-        return int(v)
-    except ValueError:
-        raise ValueError(f"{ENV[name]}={v!r} must be an integer") from None
-
-
-def writes() -> bool:
-    """Whether this process writes results and prints them: process 0 of a multi-process run,
-    or the only one."""
-    import jax
-
-    return jax.process_index() == 0

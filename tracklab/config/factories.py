@@ -2,11 +2,13 @@
 
 A ``[[filter]]``, ``[scenario]`` or ``[sensor]`` table whose kind has a colon names a
 callable: the module is imported from the experiment file's folder, the folders its
-``[experiment] pythonpath`` lists (relative to the file), or the Python path, and the callable is called with a context (what the experiment fixes) and the table's
-other keys as keyword arguments. Whatever goes wrong — the module cannot be imported,
-it has no such callable, the call raises, or what it returns is not what the table
-needs — is one ``ConfigError`` line (file, field, value, what went wrong), before
-anything compiles.
+``[experiment] pythonpath`` lists (relative to the file), or the Python path, and the
+callable is called with a context (what the experiment fixes) and the table's other keys
+as keyword arguments. Whatever goes wrong — the module cannot be imported (its import
+raises, or calls ``sys.exit``), it has no such callable, the call raises or calls
+``sys.exit``, or what it returns is not what the table needs — is one ``ConfigError``
+line (file, field, value, what went wrong), before anything compiles; a KeyboardInterrupt
+stays one.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import tomllib
 from pathlib import Path
 from typing import NamedTuple
 
-from tracklab.errors import ConfigError, first_line
+from tracklab.errors import ConfigError, exit_call, first_line
 from tracklab.filters.factory import Declared, declared
 
 FACTORY_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*")
@@ -56,8 +58,12 @@ def load_factory(file, field: str, spec: str, folders=()):
                      if own else "the Python path")
             raise ConfigError(file, field, spec, f"module {module_name!r} is not found in {where}") from None
         raise ConfigError(file, field, spec, f"importing {module_name!r} failed: {first_line(e)}") from None
-    except Exception as e:  # noqa: BLE001 - the user's module, any error
-        raise ConfigError(file, field, spec, f"importing {module_name!r} failed: {first_line(e)}") from None
+    except BaseException as e:  # noqa: BLE001 - the user's module: any error, a sys.exit too
+        if isinstance(e, KeyboardInterrupt):
+            raise
+        call = exit_call(e)
+        what = f"its import called {call}" if call else first_line(e)
+        raise ConfigError(file, field, spec, f"importing {module_name!r} failed: {what}") from None
     finally:
         for d in added:
             sys.path.remove(d)
@@ -72,11 +78,16 @@ def load_factory(file, field: str, spec: str, folders=()):
 
 
 def call_factory(file, field: str, spec: str, factory, context, options: dict):
-    """``factory(context, **options)``; any exception it raises as one ConfigError line."""
+    """``factory(context, **options)``; any exception it raises (a ``sys.exit`` too, not a
+    KeyboardInterrupt) as one ConfigError line."""
     try:
         return factory(context, **options)
-    except Exception as e:  # noqa: BLE001 - the user's code, any error
-        raise ConfigError(file, field, spec, f"the factory raised {first_line(e)}") from None
+    except BaseException as e:  # noqa: BLE001 - the user's code: any error, a sys.exit too
+        if isinstance(e, KeyboardInterrupt):
+            raise
+        call = exit_call(e)
+        what = f"called {call}" if call else f"raised {first_line(e)}"
+        raise ConfigError(file, field, spec, f"the factory {what}") from None
 
 
 def build(file, field: str, spec: str, context, options: dict, folders=()):

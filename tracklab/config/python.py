@@ -15,6 +15,7 @@ import dataclasses
 
 import numpy as np
 
+from tracklab.checks import is_real
 from tracklab.config.fields import MAX_RUN_STEPS, MAX_RUNS, NAME_RE, check_unique
 from tracklab.config.tracking import parse_filter, pred_windows_of
 from tracklab.errors import ConfigError
@@ -116,7 +117,13 @@ def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: in
     one-step prediction error, as ``[report.windows]`` in a file. ``level``: of the confidence
     intervals; ``baseline``: the filter the paired differences are to (default the first);
     ``target_precision``: run until every filter's position-RMSE interval is within ± that
-    fraction of it, ``runs`` at most (as ``runs = "auto"`` in a file).
+    fraction of it, ``runs`` at most (as ``runs = "auto"`` in a file). ``chunk``: runs per
+    chunk (None: the default).
+
+    Refused (``ConfigError``, one line): besides what a file's reader refuses, a scenario whose
+    ``dt`` is not a finite number > 0 or whose ``steps`` is not an integer >= 1, ``filters`` not
+    a list, a ``FilterSpec`` whose filter is not a ``tracklab.Filter``, ``chunk`` not an integer
+    >= 1, ``precision`` neither "float64" nor "float32".
     """
     if not isinstance(name, str) or not NAME_RE.fullmatch(name):
         raise ConfigError(WHERE, "name", name, "must be 1-100 characters of letters, digits, '_', '.', '-'")
@@ -127,11 +134,19 @@ def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: in
         raise ConfigError(WHERE, "level", level, "must be a confidence level in [0.5, 1), e.g. 0.95")
     if target_precision is not None and not (isinstance(target_precision, (int, float)) and 0 < target_precision < 1):
         raise ConfigError(WHERE, "target_precision", target_precision, "must be a relative half-width in (0, 1)")
-    if precision not in ("float64", "float32"):
+    if chunk is not None and (isinstance(chunk, (bool, np.bool_)) or not isinstance(chunk, (int, np.integer))
+                              or chunk < 1):
+        raise ConfigError(WHERE, "chunk", chunk, "must be None (the default) or an integer >= 1")
+    if not isinstance(precision, str) or precision not in ("float64", "float32"):
         raise ConfigError(WHERE, "precision", precision, "must be float64 or float32")
     if not isinstance(scenario, Scenario):
         raise ConfigError(WHERE, "scenario", type(scenario).__name__, "must be a tracklab scenario (tracklab.scenarios; "
                           "Generated(truth, dt=…, steps=…, dim=…) for a truth function of one's own)")
+    if not is_real(scenario.dt) or not (np.isfinite(scenario.dt) and scenario.dt > 0):
+        raise ConfigError(WHERE, "scenario.dt", scenario.dt, "must be a finite number > 0")
+    steps = scenario.steps
+    if isinstance(steps, (bool, np.bool_)) or not isinstance(steps, (int, np.integer)) or steps < 1:
+        raise ConfigError(WHERE, "scenario.steps", steps, "must be an integer >= 1")
     why = scenario.problem()
     if why:
         raise ConfigError(WHERE, "scenario", type(scenario).__name__, why)
@@ -143,9 +158,13 @@ def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: in
     suite = _suite(sensors, scenario)
     prior = {"pos_sigma": 100.0, "vel_sigma": 10.0, "acc_sigma": 1.0} | dict(prior or {})
     for k, v in prior.items():
-        if k not in ("pos_sigma", "vel_sigma", "acc_sigma") or not np.isfinite(v) or v <= 0:
+        if (k not in ("pos_sigma", "vel_sigma", "acc_sigma") or not is_real(v)
+                or not np.isfinite(v) or v <= 0):
             raise ConfigError(WHERE, f"prior.{k}", v, "pos_sigma, vel_sigma, acc_sigma: numbers > 0")
 
+    if filters is not None and not isinstance(filters, (list, tuple)):
+        raise ConfigError(WHERE, "filters", type(filters).__name__, "must be a list of filters (FilterSpec, a "
+                          "[[filter]] table as a dict, or a FilterConfig of a loaded experiment)")
     default_q = float(np.asarray(scenario.accel_sigma))
     entries, labels, trimmed = [], set(), set()
     for i, fc in enumerate(filters or [], start=1):

@@ -30,7 +30,7 @@ from tracklab.config.fields import (
     level_and_baseline,
 )
 from tracklab.config.studies import parse_studies
-from tracklab.errors import ConfigError, first_line
+from tracklab.errors import ConfigError, failure
 from tracklab.filters.context import filter_context
 from tracklab.filters.core import Filter
 from tracklab.filters.factory import declared
@@ -177,8 +177,10 @@ def _generated(f, kind, fn, dt, steps):
     try:
         with jax.enable_x64(True):
             shape = jax.eval_shape(fn, jax.random.key(0)).shape
-    except Exception as e:  # noqa: BLE001 - the user's function, any error
-        raise ConfigError(f, "scenario.kind", kind, f"the factory's truth(key) fails: {first_line(e)}") from None
+    except BaseException as e:  # noqa: BLE001 - the user's function: any error, a sys.exit too
+        if isinstance(e, KeyboardInterrupt):
+            raise
+        raise ConfigError(f, "scenario.kind", kind, f"the factory's truth(key) fails: {failure(e)}") from None
     if len(shape) != 2 or shape[1] not in (2, 4, 6):
         raise ConfigError(f, "scenario.kind", kind, f"the factory's truth(key) gives shape {shape}: expected "
                           f"({steps + 1}, 2·dim) rows of [x, ẋ, y, ẏ(, z, ż)]")
@@ -355,8 +357,10 @@ def _own_filter(f, i, fs, spec, suite, scenario, folders=()):
     for name in params:
         try:
             default = params[name].value(context)
-        except Exception as e:  # noqa: BLE001 - the user's default, any error
-            raise ConfigError(f, f"filter[{i}].{name}", None, f"its declared default fails: {first_line(e)}") from None
+        except BaseException as e:  # noqa: BLE001 - the user's default: any error, a sys.exit too
+            if isinstance(e, KeyboardInterrupt):
+                raise
+            raise ConfigError(f, f"filter[{i}].{name}", None, f"its declared default fails: {failure(e)}") from None
         why = factory.problem(name, options.get(name, default), default)
         if why and name in options:
             raise ConfigError(f, f"filter[{i}].{name}", options[name], why)

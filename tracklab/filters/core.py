@@ -18,7 +18,7 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from tracklab.errors import first_line
+from tracklab.errors import failure
 
 
 class Prior(NamedTuple):
@@ -126,8 +126,10 @@ def trace_problem(flt: Filter, n: int, m: int, params=None, precision: str = "fl
                 lambda a: jnp.asarray(a, dtype) if jnp.issubdtype(jnp.result_type(a), jnp.floating) else a, params)
             state = jax.eval_shape(flt.init, params, Prior(f64(n), f64(n, n)))
             state2, out = jax.eval_shape(flt.step, params, state, Meas(f64(m), f64(), jax.ShapeDtypeStruct((), bool)))
-    except Exception as e:  # noqa: BLE001 - the user's functions, any error
-        return f"fails when traced with a state of {n} and a measurement of {m} components: {first_line(e)}"
+    except BaseException as e:  # noqa: BLE001 - the user's functions: any error, a sys.exit too
+        if isinstance(e, KeyboardInterrupt):
+            raise
+        return f"fails when traced with a state of {n} and a measurement of {m} components: {failure(e)}"
     if not isinstance(out, Out):
         return f"step returns {type(out).__name__} as its output: expected tracklab.filters.Out(x, P, …)"
     shapes = lambda t: jax.tree_util.tree_map(lambda a: a.shape, t)  # noqa: E731

@@ -29,7 +29,7 @@ chunk of runs, ``chunk(params, keys, live, exclude) -> sums``, plus a hashable
   it); the host combines the devices' parts. ``add``, ``max`` and ``first`` are
   dictionaries whose keys do not collide; the caller gets them as one (``merged``).
 
-Several processes (``runtime.start_processes``: one per host or per GPU) share
+Several processes (``tracklab.processes``: one per host or per GPU) share
 every chunk: process p runs its slice of the chunk's runs on its own devices, and
 the processes' combined parts are gathered once per chunk (one collective) and
 combined by the same rules, so every process holds the same sums and a run's

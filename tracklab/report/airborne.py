@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tracklab.intervals import with_half_width
+from tracklab.intervals import percent, with_half_width
 from tracklab.report.document import write_tables
 from tracklab.report.figures import (
     arr,
@@ -73,9 +73,9 @@ def airborne_tables(doc) -> str:
              "(from the mean curve; no interval)."] if events else []
     if any("half_width" in f for f in filters.values()):
         level = doc.get("level", 0.95)
-        notes.append(f"± : half-width of the {level:.0%} confidence interval over the runs in lock (Student t over "
+        notes.append(f"± : half-width of the {percent(level)} confidence interval over the runs in lock (Student t over "
                      "the runs' window averages; delta method for an RMS). Differences: on the same runs, with "
-                     f"their paired interval; (n.s.): not significant at {level:.0%}. Lost lock: runs, with the "
+                     f"their paired interval; (n.s.): not significant at {percent(level)}. Lost lock: runs, with the "
                      "Wilson interval of their fraction." + auto_note(doc))
     return "\n".join(out) + "\n" + "".join(f"\n{n}\n" for n in notes)
 
@@ -129,7 +129,7 @@ def plot_airborne(doc, folder: Path):
         _range_axis(axes[0, 0], t, rng)
         axes[-1, 0].set_xlabel("time (s)")
         axes[0, 0].set_title(f"{title} ({ref})", fontsize=9)
-        legend(fig, axes, f"bands: {level:.0%} confidence of each period's RMS over the runs in lock")
+        legend(fig, axes, f"bands: {percent(level)} confidence of each period's RMS over the runs in lock")
         fig.savefig(folder / name, dpi=110)
         plt.close(fig)
     shown = {l: f for l, f in filters.items() if np.isfinite(arr(f["series"]["nees"])).any()}
@@ -141,7 +141,7 @@ def plot_airborne(doc, folder: Path):
         f0 = next(iter(shown.values()))["series"]
         if "nees_lo" in f0:
             ax.fill_between(t, arr(f0["nees_lo"]), arr(f0["nees_hi"]), color="0.82", zorder=0,
-                            label=f"{level:.0%} χ² band")
+                            label=f"{percent(level)} χ² band")
         ax.axhline(9, color="k", lw=0.6)
         plain_log(ax)
         ax.set_ylabel("average NEES (9 states)")

@@ -12,7 +12,7 @@ import numpy as np
 from tracklab import __version__
 from tracklab.output import HEADER_KEY, atomic_folder, check_results_folder
 from tracklab.report.tables import csv_table, markdown_table, stored
-from tracklab.runtime import writes
+from tracklab.processes import writes
 
 
 def _jsonable(obj):

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tracklab.intervals import with_half_width
+from tracklab.intervals import percent, with_half_width
 from tracklab.montecarlo.statistics import AXES
 
 OUTLIER = 3.0  # a filter this many times off the others' median (or off consistency) gets its own panel
@@ -114,7 +114,7 @@ def coinciding(curves: dict, window) -> list[list[str]]:
 
 
 def coincide_note(groups) -> str:
-    return "; ".join(f"{', '.join(g)} coincide (within {COINCIDE:.0%})" for g in groups)
+    return "; ".join(f"{', '.join(g)} coincide (within {percent(COINCIDE)})" for g in groups)
 
 
 def legend(fig, handles_from, note=""):
@@ -228,7 +228,7 @@ def _rmse(ctx):
                 notes += coinciding(curves, ctx["w"])
                 ax.set_title("filters far from the others (own scale)" if c == 1 else ctx["title"], fontsize=9)
         axs[-1, c].set_xlabel("time (s)")
-    legend(fig, axs, "; ".join(filter(None, [coincide_note(notes), f"bands: {doc.get('level', 0.95):.0%} "
+    legend(fig, axs, "; ".join(filter(None, [coincide_note(notes), f"bands: {percent(doc.get('level', 0.95))} "
                                               "confidence of each per-step RMSE; in brackets the time-averaged "
                                               "position and velocity RMSE"])))
     fig.savefig(ctx["folder"] / "rmse.png", dpi=110)
@@ -281,7 +281,7 @@ def _mean_error(ctx):
             ax.grid(True, alpha=0.3)
         axs[0, c].set_title("filters far from the others (own scale)" if c == 1 else ctx["title"], fontsize=9)
         axs[-1, c].set_xlabel("time (s)")
-    legend(fig, axs, f"bands: {doc.get('level', 0.95):.0%} confidence of the mean error over the runs")
+    legend(fig, axs, f"bands: {percent(doc.get('level', 0.95))} confidence of the mean error over the runs")
     fig.savefig(ctx["folder"] / "mean_error.png", dpi=110)
     ctx["plt"].close(fig)
 
@@ -343,7 +343,7 @@ def _consistency(ctx, key, ylabel, dof):
             curves[l] = arr(s[key])
             ax.plot(t, curves[l], label=l + summary_value(shown[l], key), **st[l])
         for i, ((lo, hi), l) in enumerate(bands.items()):
-            ax.fill_between(t, lo, hi, color="0.82", zorder=0, label=f"{doc.get('level', 0.95):.0%} χ² band"
+            ax.fill_between(t, lo, hi, color="0.82", zorder=0, label=f"{percent(doc.get('level', 0.95))} χ² band"
                             if i == 0 else None)
         if dof is not None:
             ax.axhline(dof, color="k", lw=0.6)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tracklab.intervals import with_half_width
+from tracklab.intervals import percent, with_half_width
 from tracklab.output import atomic_folder
 from tracklab.report.document import write_json
 from tracklab.report.figures import pyplot
@@ -17,9 +17,18 @@ from tracklab.report.tables import md_cell
 
 
 def write_sweep(exp, doc, out, figures=True):
-    """sweep.json, table.md, table.csv and heatmaps (1-D: curves) of RMSE and NEES per filter."""
+    """sweep.json, table.md, table.csv and heatmaps (1-D: curves) of RMSE and NEES per filter; a
+    sweep of three axes or more has no figures (``no_figures``)."""
     with atomic_folder(Path(out), exp.path) as tmp:
         return _write_sweep(exp, doc, tmp, figures)
+
+def no_figures(doc) -> str | None:
+    """Why a sweep has no figures, in one line (None when it has them): figures draw 1 or 2 axes."""
+    k = len(doc["axes"])
+    if k <= 2:
+        return None
+    return (f"no figures: a sweep of {k} axes is written to sweep.json, table.md and table.csv only; "
+            "figures draw 1 or 2 axes")
 
 def _csv(v):
     return v if v is not None and np.isfinite(v) else ""
@@ -71,14 +80,14 @@ def _write_sweep(exp, doc, tmp, figures):
         "experiment": exp.raw,
     }
     write_json(tmp / "sweep.json", summary_only)
-    if figures and len(names) <= 2:
+    if figures and not no_figures(doc):
         _plot(doc, names, labels, tmp)
     return rows
 
 def sweep_caption(doc) -> str:
     """What a sweep table's ± are, and which points ran on the same runs."""
     levels = sorted({p["stats"].get("level", 0.95) for p in doc["points"]})
-    level = (f"the {levels[0]:.0%} confidence interval" if len(levels) == 1
+    level = (f"the {percent(levels[0])} confidence interval" if len(levels) == 1
              else "each point's confidence interval (at its report.level)")
     structural, separate = doc.get("structural") or [], doc.get("separate") or []
     if not structural and not separate:

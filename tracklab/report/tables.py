@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from tracklab.intervals import format_value, missing, with_half_width
+from tracklab.intervals import format_value, missing, percent, with_half_width
 from tracklab.montecarlo.statistics import AXES
 
 # (summary key, title, format); {p}/{v} are the position/velocity units, {a} an axis name
@@ -50,13 +50,13 @@ def fmt(v, spec):
     return format_value(v, spec)
 
 def diverged_cell(f, key="diverged") -> str:
-    """``k (lo–hi %)``: the diverged runs (summary ``key``) and the Wilson interval of their fraction."""
+    """``k (lo–hi %)``: the diverged runs (summary ``key``) and the Wilson interval of their fraction
+    (``8 (68–100 %)``, ``0 (0–0.12 %)``)."""
     k = f["summary"].get(key)
     lo_hi = f.get("intervals", {}).get("diverged_fraction")
-    if k is None or not lo_hi or missing(lo_hi[1]):
+    if k is None or not lo_hi or missing(lo_hi[0]) or missing(lo_hi[1]):
         return fmt(k, "{:d}")
-    lo, hi = (100.0 * v for v in lo_hi)
-    return f"{k} ({lo:.2g}–{hi:.2g} %)"
+    return f"{k} ({percent(lo_hi[0], sign=False)}–{percent(lo_hi[1])})"
 
 def paired_cell(f, key) -> str:
     pd = f.get("paired", {})
@@ -133,7 +133,7 @@ def table_caption(stats) -> str:
     summaries = [f["summary"] for f in stats["filters"].values()]
     servo = any("max_track_err" in s for s in summaries)
     nis = any(not missing(f.get("half_width", {}).get("nis")) for f in stats["filters"].values())
-    text = (f"± : half-width of the {level:.0%} confidence interval over the {runs} runs (Student t over the runs' "
+    text = (f"± : half-width of the {percent(level)} confidence interval over the {runs} runs (Student t over the runs' "
             + ("values)." if servo else f"time-averaged values; delta method for an RMSE{' and the NIS' if nis else ''}).")
             + " diverged: runs, with the Wilson interval of their fraction.")
     if any("max_track_err_p50" in s for s in summaries):
@@ -143,7 +143,7 @@ def table_caption(stats) -> str:
     base = _baseline(stats)
     if base is not None:
         text += (f" Δ: difference to {base} on the same runs with its paired interval; "
-                 f"(n.s.): not significant at {level:.0%}.")
+                 f"(n.s.): not significant at {percent(level)}.")
     return text + auto_note(stats)
 
 def auto_note(stats) -> str:

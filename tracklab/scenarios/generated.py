@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab.errors import first_line
+from tracklab.errors import failure
 from tracklab.pytree import Code, static, traced_key
 from tracklab.scenarios.kind import Scenario
 
@@ -58,8 +58,10 @@ class Generated(Scenario):
         try:
             with jax.enable_x64(True):
                 out = jax.eval_shape(self.simulate, jax.random.key(0))
-        except Exception as e:  # noqa: BLE001 - the user's function, any error
-            return f"truth(key) fails: {first_line(e)}"
+        except BaseException as e:  # noqa: BLE001 - the user's function: any error, a sys.exit too
+            if isinstance(e, KeyboardInterrupt):
+                raise
+            return f"truth(key) fails: {failure(e)}"
         want = (self.steps + 1, 2 * self.dim)
         if getattr(out, "shape", None) != want or not jnp.issubdtype(out.dtype, jnp.floating):
             return (f"truth(key) gives {getattr(out, 'shape', type(out).__name__)}"

@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab.errors import first_line
+from tracklab.errors import failure
 from tracklab.linalg import jacobian
 from tracklab.pytree import Code, static, traced_key
 from tracklab.sensors.geometry import measure_whole, report_mask, reported, sensor_draws
@@ -125,8 +125,10 @@ class CustomSensor:
         try:
             with jax.enable_x64(True):
                 shape = jax.eval_shape(self.h, jax.ShapeDtypeStruct((self.dim,), jnp.float64)).shape
-        except Exception as e:  # noqa: BLE001 - the user's function, any error
-            return f"h(p) fails on a position of shape ({self.dim},): {first_line(e)}"
+        except BaseException as e:  # noqa: BLE001 - the user's function: any error, a sys.exit too
+            if isinstance(e, KeyboardInterrupt):
+                raise
+            return f"h(p) fails on a position of shape ({self.dim},): {failure(e)}"
         if shape != (self.m,):
             return f"h(p) gives shape {shape}, R is {self.m} x {self.m}: expected ({self.m},)"
         return None

@@ -20,9 +20,9 @@ from tracklab.output import (
     check_tuned_file,
     write_text_atomically,
 )
-from tracklab.report.sweep import runs_text, write_sweep
+from tracklab.report.sweep import no_figures, runs_text, write_sweep
 from tracklab.report.tuning import tune_report
-from tracklab.runtime import writes
+from tracklab.processes import writes
 from tracklab.studies.sweep import sweep
 from tracklab.studies.tune import (
     forward_mode,
@@ -129,5 +129,7 @@ def run_study(exp, study, results_dir, quick=False, log=print, figures=True):
         axes = [type(a)(a.name, a.values[[0, -1]] if len(a.values) > 1 else a.values) for a in axes]
     doc = sweep(exp, axes, runs=4 if quick else study.runs)
     write_sweep(exp, doc, base, figures=figures)
+    if figures and no_figures(doc):
+        log(f"        {no_figures(doc)}")
     log(f"        sweep: {math.prod(len(a.values) for a in axes)} points x {runs_text(doc['runs'])} runs, {doc['wall_s']:.1f} s")
     return [base]

@@ -12,13 +12,17 @@ Two kinds of axis (``--grid``):
   tables, ``section[LABEL].field`` with the entry's label (a sensor's name; or its
   1-based index): ``filter[EKF].accel_sigma``, ``tracker[joint EKF].q_scale``.
 
-Each grid point is the file with those values, validated as the file itself is;
-its numbers are a parameter set of the same compiled program (numbers are inputs:
-a value that would change the program — a step count, a kind — is refused). The
-parameter sets of a block of points are stacked along a leading axis and run on
-the same runs (run i draws from ``fold_in(key, i)`` at every point), so
-differences between points are the parameters', not the noise's. Grid points and
-runs are processed in blocks so memory stays bounded.
+Each grid point is the file with those values, validated as the file itself is, and run
+as ``tracklab run`` runs it: its own runs, seed, level and precision (a runs axis is a
+convergence study, a level axis recomputes the intervals at each level). Points whose
+programs are alike are one compiled program: their parameter sets stacked along a leading
+axis and run on the same runs (run i draws from ``fold_in(key, i)`` at every point), so
+differences between points are the parameters', not the noise's. A value that changes the
+program (a step count, a kind, a number a plug-in compiles in) runs one program per value;
+points with different runs or seeds run on runs of their own. Refused in one line before
+anything runs: a PATH that names no number, a [[study]] table's settings, a point that
+trains an estimator first, and an axis none of whose values changes what runs or is
+reported. Grid points and runs are processed in blocks so memory stays bounded.
 """
 
 from __future__ import annotations
@@ -84,6 +88,9 @@ def check_sweep(exp, axes: list[Axis], runs=None, limit=None):
         if a.path is None and not _scales(exp, a.name):
             raise ConfigError(exp.path, "--grid", a.name, f"no filter of this experiment declares a scalable "
                               f"parameter {a.name!r} (scalable here: {', '.join(exp.scalable()) or 'none'})")
+        if a.path is not None and a.path[0] == "study":
+            raise ConfigError(exp.path, "--grid", a.name, "a [[study]] table's numbers set how that study runs (tracklab "
+                              "reproduce), not the experiment: sweep a number of the experiment's own tables")
         if a.path is not None:
             _path_of(exp, a)
         if a.path == ("experiment", None, "runs") and runs is not None:
@@ -120,6 +127,33 @@ def point(exp, axes: list[Axis], values):
     params = at.params()
     return at, (at.scaled(params, factors) if factors else params)
 
+REPORTED = ("runs", "seed", "precision", "level", "window", "baseline", "steps")  # besides structure and params
+
+
+def _inputs(at, params) -> tuple:
+    """What a grid point runs and reports with: equal for two points, equal statistics."""
+    leaves, treedef = jax.tree_util.tree_flatten(params)
+    numbers = tuple((np.shape(a), np.asarray(a).dtype.name, np.asarray(a).tobytes()) for a in leaves)
+    return (at.structure(16, 16), treedef, numbers) + tuple(getattr(at, k) for k in REPORTED)
+
+
+def check_points(exp, axes, values, made):
+    """Refuse (ConfigError, one line) a grid whose point trains an estimator before its run, and an
+    axis none of whose values changes what runs or is reported (its statistics would repeat
+    under different labels)."""
+    for (at, _), v in zip(made, values):
+        if at.trained_first():
+            what = ", ".join(f"{a.name} = {x:g}" for a, x in zip(axes, v))
+            raise ConfigError(exp.path, "--grid", what, "trains an estimator before its run (train_steps > 0), which "
+                              "a sweep cannot: sweep with train_steps = 0, or the trained weights through the Python API")
+    inputs = [_inputs(at, params) for at, params in made]
+    for i, a in enumerate(axes):
+        if len(a.values) > 1 and not _changes(values, i, inputs):
+            raise ConfigError(exp.path, "--grid", a.name, "no value of it changes what runs or what is reported, "
+                              "given the file's other settings (e.g. a training setting of an estimator with "
+                              "train_steps = 0): there is nothing to sweep")
+
+
 def _shape(params):
     leaves, treedef = jax.tree_util.tree_flatten(params)
     return treedef, tuple((np.shape(a), np.asarray(a).dtype.name) for a in leaves)
@@ -140,6 +174,7 @@ def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=
     names = [a.name for a in axes]
     P = len(values)
     made = [point(exp, axes, v) for v in values]  # every point checked before anything runs
+    check_points(exp, axes, values, made)
     most = max(int(runs or at.runs) for at, _ in made)  # one chunk size for any runs a point asks
     groups: dict = {}
     for j, (at, params) in enumerate(made):

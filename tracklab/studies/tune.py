@@ -49,6 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from tracklab.checks import check_count, check_positive, refuse, wrong_type
 from tracklab.montecarlo import runner
 from tracklab.parameters import constraint_of, write_value
 from tracklab.worlds.protocol import Experiment
@@ -283,10 +284,49 @@ def tune(exp, names, *, steps=200, lr=0.05, loss=None, runs_per_step=None, eval_
          labels=None, every=10, progress=None) -> TuneResult:
     """Adam (optax) on the named parameters (see ``selection``); a fresh batch of runs every step.
 
-    Runs in float64 whatever JAX's global mode (``tracklab.runtime``)."""
+    ``exp``: an experiment of any world (``tracklab.experiment``, ``tracklab.load_experiment``);
+    ``steps``: Adam steps; ``lr``: its learning rate (in the unconstrained coordinates);
+    ``loss``: one of the world's (default its first); ``runs_per_step``: fresh runs per step
+    (default the experiment's runs, 256 at most); ``eval_runs``: the held-out runs (default the
+    experiment's, 2000 at most); ``seed``: default the experiment's; ``labels``: the units tuned
+    (default every one with the parameters); ``progress(step, losses, gradient norm)`` every
+    ``every`` steps. Runs in float64 whatever JAX's global mode (``tracklab.runtime``).
+
+    Refused before anything compiles, in one line naming the argument: ``exp`` not an experiment
+    or ``names`` not a name, a list of names or a dict (``TypeError``); ``steps``, ``every``,
+    ``runs_per_step``, ``eval_runs`` not integers >= 1; ``lr`` not a finite number > 0; ``seed``
+    not an integer in [0, 2³² − 1]; ``labels`` naming no unit of the experiment; ``progress``
+    not callable; a name, label, loss or constraint ``selection``/``objective`` refuses."""
+    _check(exp, names, steps=steps, lr=lr, runs_per_step=runs_per_step, eval_runs=eval_runs, seed=seed,
+           labels=labels, every=every, progress=progress)
     with jax.enable_x64(True):
         return _tune(exp, names, steps=steps, lr=lr, loss=loss, runs_per_step=runs_per_step, eval_runs=eval_runs,
                      seed=seed, labels=labels, every=every, progress=progress)
+
+
+def _check(exp, names, *, steps, lr, runs_per_step, eval_runs, seed, labels, every, progress):
+    """``tune``'s refusals of its arguments (see its doc)."""
+    where = "tracklab.tune"
+    if not isinstance(exp, Experiment):
+        raise wrong_type(where, "exp", exp, "must be an experiment (tracklab.experiment(…) or "
+                         "tracklab.load_experiment(path))")
+    if not isinstance(names, (str, dict)) and not (isinstance(names, (list, tuple, set, frozenset))
+                                                   and all(isinstance(n, str) for n in names)):
+        raise wrong_type(where, "names", names, "must be a parameter name, a list of names, or {label: names "
+                         "or {leaf: constraint}}")
+    check_count(where, "steps", steps)
+    check_positive(where, "lr", lr)
+    check_count(where, "runs_per_step", runs_per_step, optional=True)
+    check_count(where, "eval_runs", eval_runs, optional=True)
+    check_count(where, "seed", seed, 0, 2**32 - 1, optional=True)
+    check_count(where, "every", every)
+    if labels is not None:
+        known = exp.tables()[1]
+        if (isinstance(labels, str) or not isinstance(labels, (list, tuple, set, frozenset)) or not labels
+                or any(l not in known for l in labels)):
+            raise refuse(where, "labels", labels, f"must be None or a list of labels from: {', '.join(map(str, known))}")
+    if progress is not None and not callable(progress):
+        raise wrong_type(where, "progress", progress, "must be None or a function progress(step, losses, gradient norm)")
 
 
 def _tune(exp, names, *, steps, lr, loss, runs_per_step, eval_runs, seed, labels, every, progress) -> TuneResult:

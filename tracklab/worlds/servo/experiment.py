@@ -6,6 +6,7 @@ its Monte-Carlo run (through the runner), its case statistics, tables and figure
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass, field
@@ -63,6 +64,16 @@ class Case:
     estimator: str | None  # a label, "perfect" or None
 
 
+@functools.lru_cache(maxsize=256)
+def _target_scale(kind: str, numbers: tuple, duration: float) -> tuple:
+    """The largest |θ|, |θ̇|, |θ̈| of a target over a run (sampled at 2001 instants)."""
+    f = target_function(kind, dict(numbers))
+    with jax.ensure_compile_time_eval():  # numbers of the file, also when asked inside a traced tuning step
+        t = jnp.linspace(0.0, duration, 2001)
+        vals = np.abs(np.asarray(jax.vmap(f)(t)))
+    return tuple(float(max(v, 1e-6)) for v in vals.max(axis=0))
+
+
 @dataclass
 class ServoExperiment(protocol.Experiment):
     path: Path
@@ -118,11 +129,8 @@ class ServoExperiment(protocol.Experiment):
 
     def target_scale(self):
         """Typical |θ|, |θ̇|, |θ̈| of the target (the network's input scaling)."""
-        f = self.target_fn()
-        with jax.ensure_compile_time_eval():  # numbers of the file, also when asked inside a traced tuning step
-            t = jnp.linspace(0.0, self.frames * self.frame_dt, 2001)
-            vals = np.abs(np.asarray(jax.vmap(f)(t)))
-        return tuple(float(max(v, 1e-6)) for v in vals.max(axis=0))
+        numbers = tuple(sorted((k, float(v)) for k, v in self.target.items() if k != "kind"))
+        return _target_scale(self.target["kind"], numbers, self.frames * self.frame_dt)
 
     def setting(self) -> Setting:
         """What the estimators' kinds make their code and numbers with."""

@@ -66,6 +66,12 @@ class FilterSpec:
     code: str | None = None  # program_key of its filter; None: structure by identity
 
     def __post_init__(self):
+        if not isinstance(self.label, str):
+            raise TypeError(f"tracklab.FilterSpec: label = {self.label!r}: must be a string (the filter's name in the "
+                            f"tables)")
+        if not isinstance(self.filter, Filter):
+            hint = " (build one with tracklab.filters.build)" if isinstance(self.filter, str) else ""
+            raise TypeError(f"tracklab.FilterSpec: filter = {self.filter!r}: must be a tracklab.Filter{hint}")
         if not self.declared and self.filter.declared:  # what its factory declares (tracklab.declare)
             object.__setattr__(self, "declared", dict(self.filter.declared))
 

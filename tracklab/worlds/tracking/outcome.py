@@ -10,10 +10,22 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from tracklab.checks import (
+    check_count,
+    check_covariance,
+    check_filter,
+    check_positive,
+    check_precision,
+    numeric,
+    refuse,
+    wrong_type,
+)
+from tracklab.filters.core import Filter
 from tracklab.intervals import LEVEL, precision_reached
 from tracklab.montecarlo import runner
 from tracklab.montecarlo.pcrlb import pcrlb64
 from tracklab.montecarlo.statistics import REPORT_WINDOW
+from tracklab.scenarios import Scenario
 from tracklab.sensors import SensorSuite
 from tracklab.worlds.tracking.errors import sample_names, unpack
 from tracklab.worlds.tracking.lanes import FilterSpec
@@ -112,7 +124,15 @@ def monte_carlo(
     them); sums are accumulated on the host in float64 either way, and the
     random draws are the same (made in float32 in both). ``windows`` (name -> (steps,)
     bool mask) are where each run's largest one-step prediction error is taken.
+
+    Refused before anything compiles, in one line naming the argument: ``scenario`` not a
+    tracklab scenario, or its ``dt`` not a finite number > 0; ``specs`` empty, or holding
+    anything but ``FilterSpec``s around a ``tracklab.Filter``; ``runs`` or ``chunk`` not an
+    integer >= 1; ``P0_cv`` not (2·dim, 2·dim), not finite, not symmetric or not positive
+    definite; ``params`` not one per filter; ``precision`` neither "float64" nor "float32";
+    a ``windows`` mask not of the scenario's steps.
     """
+    _check(scenario, specs, runs, P0_cv, chunk, params, precision, windows)
     if not isinstance(sensor, SensorSuite):
         sensor = SensorSuite((sensor,))
     chunk = int(chunk or default_chunk(scenario, sensor, runs=runs))
@@ -120,3 +140,38 @@ def monte_carlo(
     filter_params = list(params) if params is not None else [s.filter.params for s in specs]
     p = TrackingParams(scenario, sensor, np.asarray(P0_cv, float), 0.0, filter_params)
     return run(structure, p, runs, key, progress=progress, precision=precision)
+
+
+def _check(scenario, specs, runs, P0_cv, chunk, params, precision, windows):
+    """``monte_carlo``'s refusals (see its doc)."""
+    where = "tracklab.monte_carlo"
+    if not isinstance(scenario, Scenario):
+        raise wrong_type(where, "scenario", scenario, "must be a tracklab scenario (tracklab.scenarios; "
+                         "Generated(truth, dt=…, steps=…, dim=…) for a truth function of one's own)")
+    check_positive(where, "scenario.dt", scenario.dt)
+    steps = check_count(where, "scenario.steps", scenario.steps)
+    check_precision(where, precision)
+    check_count(where, "runs", runs)
+    check_count(where, "chunk", chunk, optional=True)
+    if isinstance(specs, (str, FilterSpec, Filter)) or not isinstance(specs, Sequence):
+        raise wrong_type(where, "specs", specs, "must be a list of tracklab.FilterSpec(label, filter)")
+    if not specs:
+        raise refuse(where, "specs", specs, "must hold at least one tracklab.FilterSpec(label, filter)")
+    for i, spec in enumerate(specs):
+        if isinstance(spec, Filter):
+            raise wrong_type(where, f"specs[{i}]", spec, "give it a label: tracklab.FilterSpec(label, filter)")
+        if not isinstance(spec, FilterSpec):
+            raise wrong_type(where, f"specs[{i}]", spec, "must be a tracklab.FilterSpec(label, filter)")
+        check_filter(where, f"specs[{i}].filter", spec.filter)
+    if params is not None and (isinstance(params, (str, dict)) or not isinstance(params, Sequence)
+                               or len(params) != len(specs)):
+        raise refuse(where, "params", params, f"must be None or a list of {len(specs)} parameter pytrees, one per filter")
+    n = 2 * int(scenario.dim)
+    if np.shape(P0_cv) != (n, n):
+        raise refuse(where, "P0_cv", numeric(where, "P0_cv", P0_cv), f"must be ({n}, {n}): the prior covariance of "
+                     f"[x, ẋ, y, ẏ{', z, ż' if n == 6 else ''}] (CV layout)")
+    check_covariance(where, "P0_cv", P0_cv)
+    for name, m in (windows or {}).items():
+        if np.shape(m) != (steps,):
+            raise refuse(where, f"windows[{name!r}]", np.asarray(m), f"must be a mask of the {steps} steps, "
+                         f"shape ({steps},)")

@@ -22,6 +22,8 @@ import jax.extend
 import jax.numpy as jnp
 import numpy as np
 
+from tracklab.checks import check_finite, check_positive, refuse, wrong_type
+from tracklab.filtering import FilterResult
 from tracklab.filters.core import Out
 from tracklab.models import cv_index, interleaved
 from tracklab.montecarlo.samples import RunSamples
@@ -112,12 +114,16 @@ class Recorded:
     def ran_with(self) -> dict:
         return self.parameters
 
+_RESULTS = ("must be a tracklab.FilterResult (run_filter's) or a dict {label: FilterResult} of one or more, "
+            "all over the same measurements")
+
+
 def _batched(a, what, ndim):
     a = np.asarray(a, float)
     if a.ndim == ndim:
         a = a[None]
     if a.ndim != ndim + 1:
-        raise ValueError(f"evaluate: {what} has shape {np.shape(a)}: expected {ndim} or {ndim + 1} axes")
+        raise ValueError(f"tracklab.evaluate: {what} has shape {np.shape(a)}: expected {ndim} or {ndim + 1} axes")
     return a
 
 def evaluate(results, truth, *, dt: float, name: str = "recorded", window: tuple[int, int] | None = None,
@@ -125,7 +131,7 @@ def evaluate(results, truth, *, dt: float, name: str = "recorded", window: tuple
     """The statistics document (what stats.json holds) of filters' results on recorded
     measurements against the truth; with ``out``, also the results folder (stats.json,
     table.md, table.csv, figures), written as ``tracklab run`` writes one. The arguments
-    are those of ``judge``."""
+    are those of ``judge``, refused as it refuses them, before anything compiles."""
     recorded, res = judge(results, truth, dt=dt, name=name, window=window, windows=windows, params=params)
     if out is None:
         return stats_document(recorded, res)
@@ -143,23 +149,39 @@ def judge(results, truth, *, dt: float, name: str = "recorded", window: tuple[in
     measurement step in CV layout [x, ẋ, y, ẏ(, z, ż)]. ``window`` (first, last step) is the
     report window, ``windows`` named step masks of the one-step prediction error, ``params``
     what to record of each filter's parameters. Returns (Recorded, MonteCarloResult), what
-    ``worlds.tracking.experiment.stats_document`` takes."""
+    ``worlds.tracking.experiment.stats_document`` takes.
 
+    Refused in one line naming the argument: a result that is not a ``FilterResult``, or no
+    result (``TypeError``/``ValueError``); ``truth`` not finite or of the wrong shape; ``dt``
+    not a finite number > 0; a window outside the steps, or a ``windows`` mask not of the
+    T steps (``ValueError``)."""
+    where = "tracklab.evaluate"
     if not isinstance(results, dict):
         results = {"filter": results}
-    truth = _batched(truth, "truth", 2)
+        if not isinstance(results["filter"], FilterResult):
+            raise wrong_type(where, "results", results["filter"], _RESULTS)
+    if not results:
+        raise refuse(where, "results", {}, _RESULTS)
+    for label, r in results.items():
+        if not isinstance(r, FilterResult):
+            raise wrong_type(where, f"results[{label!r}]", r, _RESULTS)
+    dt = check_positive(where, "dt", dt)
+    truth = _batched(check_finite(where, "truth", truth), "truth", 2)
     runs = {np.shape(r.x)[0] if np.ndim(r.x) == 3 else 1 for r in results.values()}
     if len(runs) != 1:
-        raise ValueError(f"evaluate: the results hold different numbers of recordings: {sorted(runs)}")
+        raise ValueError(f"tracklab.evaluate: the results hold different numbers of recordings: {sorted(runs)}")
     if truth.shape[0] == 1 and runs != {1}:  # one truth for every recording (a deterministic path)
         truth = np.broadcast_to(truth, (runs.pop(),) + truth.shape[1:])
     N, T, n2 = truth.shape
     if n2 not in (2, 4, 6):
-        raise ValueError(f"evaluate: truth has {n2} columns: expected 2·dim, [x, ẋ, y, ẏ(, z, ż)]")
+        raise ValueError(f"tracklab.evaluate: truth has {n2} columns: expected 2·dim, [x, ẋ, y, ẏ(, z, ż)]")
     dim = n2 // 2
     w = tuple(window) if window is not None else (1, T)
     if not 1 <= w[0] <= w[1] <= T:
-        raise ValueError(f"evaluate: window {window}: expected 1 <= first <= last <= {T}")
+        raise ValueError(f"tracklab.evaluate: window {window}: expected 1 <= first <= last <= {T}")
+    for wname, m in (windows or {}).items():
+        if np.shape(m) != (T,):
+            raise refuse(where, f"windows[{wname!r}]", np.asarray(m), f"must be a mask of the {T} steps, shape ({T},)")
     k = np.arange(1, T + 1)
     masks = {REPORT_WINDOW: (k >= w[0]) & (k <= w[1])} | {n: np.asarray(m, bool) for n, m in (windows or {}).items()}
     t0 = time.perf_counter()
@@ -168,12 +190,12 @@ def judge(results, truth, *, dt: float, name: str = "recorded", window: tuple[in
         for label, r in results.items():
             x = _batched(r.x, f"{label}: x", 2)
             if x.shape[:2] != (N, T):
-                raise ValueError(f"evaluate: {label}: x has shape {np.shape(r.x)}, the truth {np.shape(truth)}: "
+                raise ValueError(f"tracklab.evaluate: {label}: x has shape {np.shape(r.x)}, the truth {np.shape(truth)}: "
                                  f"give the truth at each of the T steps, (T, 2·dim) or (N, T, 2·dim)")
             layout = r.layout or interleaved(dim)
             why = layout.check(dim) if hasattr(layout, "check") else None
             if why or layout.n != x.shape[-1]:
-                raise ValueError(f"evaluate: {label}: its state has {x.shape[-1]} components, the truth is {dim}-D: "
+                raise ValueError(f"tracklab.evaluate: {label}: its state has {x.shape[-1]} components, the truth is {dim}-D: "
                                  f"{why or 'set the filter layout (tracklab.Layout) of its position and velocity'}")
             lead = lambda a, nd: None if a is None else _batched(a, label, nd)
             out = Out(x=x, P=lead(r.P, 3), x_pred=lead(r.x_pred, 2), nu=lead(r.nu, 2), S=lead(r.S, 3),
