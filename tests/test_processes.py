@@ -31,6 +31,20 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def _wait_connected(port: int, timeout: float):
+    """Until a TCP connection to ``port`` on this machine is established (Linux's /proc/net)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+            try:
+                rows = open(table).read().splitlines()[1:]
+            except OSError:
+                continue
+            if any(r.split()[2].endswith(f":{port:04X}") and r.split()[3] == "01" for r in rows):
+                return
+        time.sleep(0.2)
+
+
 def _numbers(a, b, where):
     """Every number of ``a`` equals ``b``'s to 1e-12 (relative): the chunk-size tests' tolerance."""
     if isinstance(a, dict):
@@ -116,7 +130,7 @@ def test_processes_that_cannot_meet_or_disagree_stop_in_one_line(tmp_path):
     path.write_text(EXPERIMENT)
     env = dict(os.environ, **{name: "" for name in processes.ENV.values()})
 
-    def start(port, pid, *extra, timeout=4):
+    def start(port, pid, *extra, timeout=2):
         out = tmp_path / f"out{port}"
         return subprocess.Popen([*_command(), "run", str(path), "--no-figures", "--out", str(out), "--coordinator",
                                  f"127.0.0.1:{port}", "--processes", "2", "--process-id", str(pid),
@@ -129,13 +143,14 @@ def test_processes_that_cannot_meet_or_disagree_stop_in_one_line(tmp_path):
     lone_coordinator = start(ports[1], 0)
     disagree = [start(ports[2], 0, "--runs", "100", timeout=30), start(ports[2], 1, "--runs", "300", timeout=30)]
     killed = [start(ports[3], i, "--runs", "50000000", timeout=30) for i in (0, 1)]
-    time.sleep(12)  # both started (whatever it is doing, process 0 must stop)
+    _wait_connected(ports[3], 60)  # the pair has met; whatever process 0 does next, it must stop
+    time.sleep(1)
     killed[1].kill()
     results = {name: [(p.wait(timeout=120), *p.communicate()) for p in ps] for name, ps in
                [("lone peer", [lone_peer]), ("lone coordinator", [lone_coordinator]), ("disagree", disagree),
                 ("killed", killed[:1])]}
     assert time.monotonic() - t0 < 100
-    want = {"lone peer": [(1, "waited 4 s for process 0")], "lone coordinator": [(1, "for process 1 of 2: never connected")],
+    want = {"lone peer": [(1, "waited 2 s for process 0")], "lone coordinator": [(1, "for process 1 of 2: never connected")],
             "disagree": [(2, "runs (300 there, 100 in process 0) differ")] * 2, "killed": [(1, "process 0 of 2 stops")]}
     for name, outcomes in results.items():
         for (code, out, err), (status, says) in zip(outcomes, want[name]):

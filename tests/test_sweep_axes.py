@@ -118,3 +118,10 @@ def test_every_number_of_a_bundled_file_sweeps_honestly(path):
                   if not (k.startswith("study") or why.startswith("gives an invalid file") or
                           (".train_" in k and (why.startswith("no value of it") or "trains an estimator" in why)))}
     assert not unexpected, unexpected
+
+
+def test_a_number_named_twice_is_refused_whichever_way_it_is_named():
+    exp = load_experiment(Path(__file__).parent.parent / "experiments" / "lidar_real_flight.toml")
+    with pytest.raises(ConfigError, match="each number may appear once"):
+        check_sweep(exp, [_grid("filter[EKF].accel_sigma", 1, 2), _grid("filter[2].accel_sigma", 1, 2)])
+    check_sweep(exp, [_grid("filter[EKF].accel_sigma", 1, 2), _grid("filter[1].accel_sigma", 1, 2)])

@@ -69,6 +69,7 @@ def _fraction(s):
 
 def cmd_run(args) -> int:
     from tracklab.config import MAX_RUNS, load_experiment
+    from tracklab.output import check_results_folder
     from tracklab.report.tables import markdown_table
 
     exp = load_experiment(args.experiment)
@@ -83,6 +84,7 @@ def cmd_run(args) -> int:
     else:
         runs = args.runs or exp.runs
     out = Path(args.out) if args.out else Path("results") / exp.name
+    check_results_folder(out, args.experiment)  # refused as --out (exp.run names its argument out)
 
     def progress(done, total):
         raise_if_interrupted()  # after each chunk: a Ctrl-C swallowed inside a callback still stops the run

@@ -16,10 +16,14 @@ from tracklab.checks import (
     check_positive,
     check_precision,
     numeric,
+    refuse,
+    shape_of,
 )
-from tracklab.filters.core import Filter, Meas, Prior, trace_problem
+from tracklab.filters.core import Filter, Meas, Prior, measurement_sizes, trace_problem
 from tracklab.montecarlo.runner import in_precision
 from tracklab.pytree import like
+
+MEASUREMENT_SIZES = 12  # a filter refusing z's size is traced with each size up to this, to say which it takes
 
 
 @dataclass(frozen=True)
@@ -48,8 +52,10 @@ def run_filter(flt: Filter, z, *, x0, P0, params=None, dt: float = 1.0, precisio
     ``jax.enable_x64(False)`` for single precision throughout).
 
     Refused before anything compiles, in one line naming the argument: ``flt`` not a
-    ``tracklab.Filter`` (``TypeError``); ``z`` with a ±inf (NaN is a missed detection) or of
-    the wrong shape; ``x0`` not finite; ``P0`` (each of a batch) not finite, not symmetric (to
+    ``tracklab.Filter`` (``TypeError``); ``z`` with a ±inf (NaN is a missed detection), of
+    the wrong shape, or with m components where the filter measures another number (the
+    filter traced on shapes alone, with z's m and, when that fails, with other sizes); ``x0``
+    not finite; ``P0`` (each of a batch) not finite, not symmetric (to
     1e-9 of its largest entry) or not positive definite; ``dt`` not a finite number > 0;
     ``precision`` neither "float64" nor "float32"; a filter that does not trace at these shapes
     (``ValueError``).
@@ -73,8 +79,14 @@ def run_filter(flt: Filter, z, *, x0, P0, params=None, dt: float = 1.0, precisio
                              f"recording needs z as (N, T, m) with the same N")
     check_finite(where, "x0", x0)
     check_covariance(where, "P0", P0)
-    why = trace_problem(flt, n, z.shape[-1], params, precision, outputs=False)
+    m = z.shape[-1]
+    why = trace_problem(flt, n, m, params, precision, outputs=False)
     if why:
+        takes = measurement_sizes(flt, n, [k for k in range(1, max(MEASUREMENT_SIZES, m) + 1) if k != m], params,
+                                  precision, outputs=False)
+        if takes:
+            raise refuse(where, "z", shape_of(z), f"has m = {m} components per measurement, the filter takes "
+                         f"{' or '.join(map(str, takes))} (z is (T, m) or (N, T, m))")
         raise ValueError(f"{where}: the filter {why}")
     with jax.enable_x64(precision == "float64"):
         dtype = jnp.float64 if precision == "float64" else jnp.float32

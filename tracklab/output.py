@@ -219,20 +219,23 @@ def _resolve(out, file, field) -> Path:
         raise ConfigError(file, field, value, f"cannot be resolved: {e.strerror or e}") from None
 
 
-def check_results_folder(out, file, field="--out") -> Path:
+def check_results_folder(out, file, field="--out", where=None) -> Path:
     """The real path of a results folder to be written at ``out``, or ConfigError in one line.
 
-    ``file``: the experiment file (its folder may not be the output).
+    ``file``: the experiment file (its folder may not be the output; None: none). A refusal
+    names ``where`` (a Python function: ``tracklab.evaluate``, with ``field`` its argument
+    ``out``), by default ``file`` (with ``field`` the command's option).
     """
     raise_if_interrupted()  # before anything is checked, compiled or written
     value = str(out)
-    real = _resolve(out, file, field)
+    named = file if where is None else where
+    real = _resolve(out, named, field)
     cwd = _real(os.getcwd())
     if _inside(cwd, real):
-        raise ConfigError(file, field, value, "is the working folder or one above it: name a folder of its own")
+        raise ConfigError(named, field, value, "is the working folder or one above it: name a folder of its own")
     if file is not None and Path(file).exists() and _inside(_real(file).parent, real):
-        raise ConfigError(file, field, value, "holds the experiment file: name a folder of its own")
-    return _check_folder_contents(real, file, field, value)
+        raise ConfigError(named, field, value, "holds the experiment file: name a folder of its own")
+    return _check_folder_contents(real, named, field, value)
 
 
 def check_results_parent(out, experiments, field="--out") -> Path:
@@ -430,11 +433,13 @@ def _put_in_place(tmp: Path, out: Path):
 
 
 @contextlib.contextmanager
-def atomic_folder(out, file=None, field="--out"):
+def atomic_folder(out, file=None, field="--out", where=None):
     """Yield an empty temporary folder beside ``out`` that replaces ``out`` when the block
     completes (and is removed if it does not), with its manifest listing every file written
-    into it. ``out`` is checked again first."""
-    out = check_results_folder(out, file, field)
+    into it. ``out`` is checked again first (``check_results_folder``: ``file``, ``field`` and
+    ``where`` as there)."""
+    out = check_results_folder(out, file, field, where)
+    file = file if where is None else where  # what a refusal names
     out.parent.mkdir(parents=True, exist_ok=True)
     clean_stale(out)
     tmp = _new_temporary(out, os.mkdir)

@@ -36,6 +36,7 @@ import time
 from dataclasses import dataclass
 
 TIMEOUT_S = 60.0
+AFTER_LAST_EXCHANGE_S = 5.0  # how long process 0 goes on after a peer ended without reaching its end
 ENV = {"coordinator": "TRACKLAB_COORDINATOR", "processes": "TRACKLAB_PROCESSES", "process_id": "TRACKLAB_PROCESS_ID",
        "timeout": "TRACKLAB_PROCESS_TIMEOUT"}
 _HELLO = "tracklab processes 1"  # the first words every message of the meeting carries
@@ -69,8 +70,9 @@ class Meeting:
     each read by a thread of its own (``watch``) that notices a process that ends without
     reaching its end: at once in a peer when it is process 0 (nothing can be written without
     it), and in any process before JAX's runtime has connected them all; otherwise when this
-    process has not reached its own end within the timeout (a peer may end after the last
-    exchange of sums while process 0 still writes)."""
+    process has not reached its own end within ``AFTER_LAST_EXCHANGE_S`` (a peer that ends
+    between the last exchange of sums and its end leaves process 0 writing what is whole; a
+    peer that ends before it leaves process 0 waiting for an exchange that will not come)."""
 
     def __init__(self, settings: Settings, peers: dict[int, socket.socket]):
         self.settings = settings
@@ -96,7 +98,7 @@ class Meeting:
         self.gone[pid] = f"stopped with exit status {failed}" if failed else "ended"
         self.done[pid].set()
         s = self.settings
-        if self.ending.wait(0.0 if failed or pid == 0 or not self.started.is_set() else s.timeout):
+        if self.ending.wait(0.0 if failed or pid == 0 or not self.started.is_set() else AFTER_LAST_EXCHANGE_S):
             return
         when = "during the run" if self.started.is_set() else "before the run started"
         what = f"process {pid} of {s.processes} {self.gone[pid]} {when}"
@@ -248,12 +250,17 @@ def _differences(mine: dict, theirs: dict) -> str:
     differ = [n for n in names if mine.get(n) != theirs.get(n)]
     shown = []
     for n in differ[:3]:
-        a, b = mine.get(n), theirs.get(n)
+        a, b = (_option(x) for x in (mine.get(n), theirs.get(n)))
         if n == "experiment file contents":
             shown.append(n)
         else:
             shown.append(f"{n} ({b} there, {a} in process 0)")
     return ", ".join(shown) + (", …" if len(differ) > 3 else "")
+
+
+def _option(text) -> str:
+    """An option's value as ``digest`` wrote it, as a person reads it."""
+    return "not given" if text in (None, "null") else str(text)
 
 
 def _listen(s: Settings) -> socket.socket:
@@ -346,11 +353,12 @@ def _meet_as_peer(s: Settings, what: dict) -> Meeting:
         break
     try:
         _send(conn, {"process_id": s.process_id, "processes": s.processes, "what": what})
-        answer = _receive(conn, deadline + s.timeout, f"the process at {s.coordinator}")
+        # process 0 answers once every process is in, within its timeout from when it began to listen
+        answer = _receive(conn, time.monotonic() + s.timeout + 2.0, f"the process at {s.coordinator}")
     except TimeoutError:
         conn.close()
-        raise ProcessError(f"process {s.process_id} waited {s.timeout:g} s for process 0 at {s.coordinator} to "
-                           f"answer: no answer", 1) from None
+        raise ProcessError(f"process {s.process_id} connected to {s.coordinator} but had no answer within "
+                           f"{s.timeout:g} s (is it tracklab's process 0?)", 1) from None
     except (ConnectionError, OSError) as e:
         conn.close()
         raise ProcessError(f"process {s.process_id}: {e}", 1) from None

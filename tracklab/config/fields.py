@@ -14,12 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
+from tracklab.checks import MAX_RUN_STEPS, MAX_RUNS  # noqa: F401 (the file's limits too)
 from tracklab.errors import ConfigError
 from tracklab.toml_fields import MAX_MAGNITUDE
 
-MAX_RUNS = 100_000_000
 MAX_STEPS = 1_000_000
-MAX_RUN_STEPS = 10**12
 NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,99}")
 WINDOW_NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9 _.+-]{0,39}")
 

@@ -12,10 +12,11 @@ compiles; a bad input raises ``ConfigError`` (a ``ValueError``) in one line.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 
 import numpy as np
 
-from tracklab.checks import is_real
+from tracklab.checks import is_real, kind_of
 from tracklab.config.fields import MAX_RUN_STEPS, MAX_RUNS, NAME_RE, check_unique
 from tracklab.config.tracking import parse_filter, pred_windows_of
 from tracklab.errors import ConfigError
@@ -40,8 +41,11 @@ def _suite(sensors, scenario) -> SensorSuite:
         items = list(sensors.sensors)
     elif isinstance(sensors, (Sensor, CustomSensor)):
         items = [sensors]
-    else:
+    elif isinstance(sensors, (list, tuple)):
         items = list(sensors)
+    else:
+        raise ConfigError(WHERE, "sensors", kind_of(sensors), "must be a tracklab.sensors.Sensor or CustomSensor, "
+                          "a list of them, or a SensorSuite")
     if not items:
         raise ConfigError(WHERE, "sensors", sensors, "must name at least one sensor")
     out, names = [], set()
@@ -156,6 +160,9 @@ def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: in
     if runs * steps > MAX_RUN_STEPS:
         raise ConfigError(WHERE, "runs", runs, f"runs x steps must be <= {MAX_RUN_STEPS:.0e}")
     suite = _suite(sensors, scenario)
+    if prior is not None and not isinstance(prior, Mapping):
+        raise ConfigError(WHERE, "prior", kind_of(prior), "must be None or a dict of pos_sigma, vel_sigma, acc_sigma "
+                          "(numbers > 0)")
     prior = {"pos_sigma": 100.0, "vel_sigma": 10.0, "acc_sigma": 1.0} | dict(prior or {})
     for k, v in prior.items():
         if (k not in ("pos_sigma", "vel_sigma", "acc_sigma") or not is_real(v)
@@ -193,9 +200,12 @@ def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: in
     if baseline is not None and baseline not in labels:
         raise ConfigError(WHERE, "baseline", baseline, f"must be one of the filters' labels: {', '.join(sorted(labels))}")
 
-    w = tuple(window) if window is not None else (1, steps)
+    w = tuple(window) if isinstance(window, (list, tuple, np.ndarray)) else (1, steps) if window is None else ()
     if len(w) != 2 or not all(isinstance(v, (int, np.integer)) for v in w) or not 1 <= w[0] <= w[1] <= steps:
         raise ConfigError(WHERE, "window", window, f"must be (first, last) steps with 1 <= first <= last <= {steps}")
+    if windows is not None and not isinstance(windows, Mapping):
+        raise ConfigError(WHERE, "windows", kind_of(windows), 'must be None or a dict {name: [t0, t1] (seconds) or '
+                          '"rest"}, as [report.windows] in a file')
     pred_windows = pred_windows_of(WHERE, dict(windows or {}), w, steps, dt)
     raw = {
         "experiment": {"name": name, "runs": int(runs), "seed": int(seed), "dt": dt, "steps": steps,

@@ -26,7 +26,7 @@ from tracklab.filters.blocks import (
     update,
     wrap_angle,
 )
-from tracklab.filters.core import Filter, Meas, Out, Prior, masked_meas
+from tracklab.filters.core import Filter, Meas, Out, Prior, masked_meas, measuring
 from tracklab.filters.kalman import (
     ekf,
     kf,
@@ -49,9 +49,10 @@ from tracklab.filters.unscented import model_ukf
 
 def build(kind, model, sensor, params, options=None) -> Filter:
     """Build an experiment filter of ``kind`` (its declaration: ``registry.KINDS``) for a motion model and a
-    measurement model; parameters with a fixed default may be left out of ``params``."""
+    measurement model; parameters with a fixed default may be left out of ``params``. The filter
+    refuses, when traced, a measurement of other than the sensor's ``m`` components."""
     k = KINDS[kind]
-    return k.build(model, sensor, k.with_defaults(params), dict(options or {}))
+    return measuring(k.build(model, sensor, k.with_defaults(params), dict(options or {})), sensor.m)
 
 
 __all__ = [

@@ -85,6 +85,21 @@ def joseph_covariance(P, K, H, R):
     return symmetrise(mm(mm(IKH, P), IKH.T) + mm(mm(K, R), K.T))
 
 
+def _check_shapes(where: str, g: Gaussian, **arrays):
+    """``ValueError`` when the arrays of an update do not fit one measurement of m components (H's
+    rows) and the state of n = len(g.x): z, h_x, nu, present (m,), H (m, n), R (m, m). Shapes are
+    known when tracing, so a measurement of the wrong size is refused there instead of broadcast."""
+    n = jnp.shape(g.x)[-1]
+    shapes = {k: tuple(jnp.shape(a)) for k, a in arrays.items() if a is not None}
+    if len(shapes["H"]) != 2 or shapes["H"][1] != n:
+        raise ValueError(f"{where}: H has shape {shapes['H']}: expected (m, {n}) for a state of {n}")
+    m = shapes["H"][0]
+    want = {"z": (m,), "h_x": (m,), "nu": (m,), "present": (m,), "H": (m, n), "R": (m, m)}
+    if any(shape != want[k] for k, shape in shapes.items()):
+        raise ValueError(f"{where}: {', '.join(f'{k} {s}' for k, s in shapes.items())}: expected "
+                         f"{', '.join(f'{k} {want[k]}' for k in shapes)} (m = {m}, H's rows; n = {n})")
+
+
 def innovation_update(g: Gaussian, nu, H, R, *, present=None) -> Update:
     """The Kalman update of ``g`` on an innovation ν (m,) already formed: S = H P Hᵀ + R,
     K = P Hᵀ S⁻¹, x⁺ = x + K ν, P⁺ = (I − K H) P (I − K H)ᵀ + K R Kᵀ (Joseph form).
@@ -93,6 +108,7 @@ def innovation_update(g: Gaussian, nu, H, R, *, present=None) -> Update:
     ν are zeroed and their R entries replaced by an uncoupled unit variance, so they change
     neither mean nor covariance (none used: the prior is kept).
     """
+    _check_shapes("innovation_update", g, nu=nu, H=H, R=R, present=present)
     if present is None:
         used = jnp.ones(jnp.shape(nu), bool)
     else:
@@ -115,6 +131,7 @@ def update(g: Gaussian, z, H, R, *, h_x=None, angles=None, present=None) -> Upda
     (NaN = absent). ``present`` known without looking at z (a report pattern shared by
     every run) keeps the covariance independent of the measurement.
     """
+    _check_shapes("update", g, z=z, H=H, h_x=h_x)
     nu = innovation(z, mm(H, g.x) if h_x is None else h_x, angles)
     return innovation_update(g, nu, H, R, present=jnp.isfinite(z) if present is None else present)
 

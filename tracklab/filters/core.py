@@ -102,6 +102,22 @@ def select(valid, a, b):
     return jax.tree_util.tree_map(lambda u, v: jnp.where(valid, u, v), a, b)
 
 
+def measuring(flt: Filter, m: int) -> Filter:
+    """``flt``, built for measurements of ``m`` components, refusing any other size when traced
+    (``ValueError``): its arrays might otherwise broadcast with a z of another size, or index
+    past its end, and run on NaN."""
+
+    def checked(fn):
+        def step(params, state, meas):
+            if jnp.shape(meas.z) != (m,):
+                raise ValueError(f"the filter measures {m} components, z has shape {jnp.shape(meas.z)}")
+            return fn(params, state, meas)
+
+        return step
+
+    return flt._replace(step=checked(flt.step), coast=None if flt.coast is None else checked(flt.coast))
+
+
 def masked_meas(meas: Meas):
     """Measurement with NaNs replaced by zeros, and which components are present."""
     present = meas.valid & (jnp.isfinite(meas.z) if meas.present is None else meas.present)
@@ -115,8 +131,8 @@ def trace_problem(flt: Filter, n: int, m: int, params=None, precision: str = "fl
     against the contract (``Out`` with x (n,), P (n, n), optional x_pred (n,), nu (k,) with
     S (k, k); a state of the same structure and shapes as ``init``'s). Traced in the
     ``precision`` the filter will run in (JAX keeps what it traced in one mode for the other).
-    ``outputs=False``: only that it traces and keeps its state's shapes (``run_filter``, which
-    reports whatever the filter gives)."""
+    ``outputs=False``: only that it traces, keeps its state's shapes and gives nu (k,) with S
+    (k, k) if either (``run_filter``, which reports x and P in whatever shapes the filter gives)."""
     params = flt.params if params is None else params
     dtype = jnp.float64 if precision == "float64" else jnp.float32
     f64 = lambda *shape: jax.ShapeDtypeStruct(shape, dtype)  # noqa: E731
@@ -135,16 +151,23 @@ def trace_problem(flt: Filter, n: int, m: int, params=None, precision: str = "fl
     shapes = lambda t: jax.tree_util.tree_map(lambda a: a.shape, t)  # noqa: E731
     if jax.tree_util.tree_structure(state2) != jax.tree_util.tree_structure(state) or shapes(state2) != shapes(state):
         return f"step returns a state shaped {shapes(state2)}, init gives {shapes(state)}: they must be alike"
+    shape = lambda a: getattr(a, "shape", None)  # noqa: E731
+    if (out.nu is None) != (out.S is None):
+        return "step gives only one of nu and S: give both (NIS) or neither"
+    if out.nu is not None and (len(shape(out.nu) or ()) != 1 or shape(out.S) != shape(out.nu) * 2):
+        return f"step gives nu {shape(out.nu)} and S {shape(out.S)}: expected (k,) and (k, k)"
     if not outputs:
         return None
-    shape = lambda a: getattr(a, "shape", None)  # noqa: E731
     if shape(out.x) != (n,) or shape(out.P) != (n, n):
         return (f"step gives x {shape(out.x)} and P {shape(out.P)}, the layout has n = {n}: "
                 f"expected ({n},) and ({n}, {n}) (set Filter.layout for another state order)")
     if out.x_pred is not None and shape(out.x_pred) != (n,):
         return f"step gives x_pred {shape(out.x_pred)}: expected ({n},)"
-    if (out.nu is None) != (out.S is None):
-        return "step gives only one of nu and S: give both (NIS) or neither"
-    if out.nu is not None and (len(shape(out.nu) or ()) != 1 or shape(out.S) != shape(out.nu) * 2):
-        return f"step gives nu {shape(out.nu)} and S {shape(out.S)}: expected (k,) and (k, k)"
     return None
+
+
+def measurement_sizes(flt: Filter, n: int, sizes, params=None, precision: str = "float64", *,
+                      outputs: bool = True) -> list[int]:
+    """The measurement sizes among ``sizes`` that ``flt`` runs with on a state of ``n`` (those
+    ``trace_problem`` finds nothing wrong with): what a filter measures, found by tracing alone."""
+    return [m for m in sizes if trace_problem(flt, n, m, params, precision, outputs=outputs) is None]

@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from tracklab.checks import check_state_space
 from tracklab.filters.blocks import Update, ekf_predict, ekf_update, kalman_filter, predict, update
 from tracklab.filters.core import Filter
 from tracklab.filters.kind import ANY_SENSOR, NOISE, Entry, FilterKind, noise, read_noise
@@ -29,7 +30,12 @@ from tracklab.sensors import CONVERSIONS
 
 
 def kf(F, H, Q, R) -> Filter:
-    """Linear Kalman filter x' = F x + w, z = H x + v; params {F, H, Q, R}."""
+    """Linear Kalman filter x' = F x + w, z = H x + v; params {F, H, Q, R}.
+
+    Refused in one line naming the argument (``checks.check_state_space``): a matrix that is not
+    numbers or not finite, F not (n, n), H not (m, n), Q not an (n, n) symmetric positive
+    semi-definite matrix, R not an (m, m) symmetric positive definite one."""
+    check_state_space("tracklab.filters.kf", F=F, H=H, Q=Q, R=R)
     params = {k: jnp.asarray(v) for k, v in dict(F=F, H=H, Q=Q, R=R).items()}
 
     def time_update(p, g):
@@ -46,7 +52,13 @@ def ekf(f, h, Q, R, *, angle_mask=None) -> Filter:
 
     Jacobians of f and h come from autodiff; innovation components flagged
     in ``angle_mask`` are wrapped to (-π, π].
+
+    Refused in one line naming the argument (``checks.check_state_space``): Q not an (n, n)
+    finite symmetric positive semi-definite matrix, R not an (m, m) finite symmetric positive
+    definite one, f or h not a function that traces on a state of n to (n,) and (m,),
+    ``angle_mask`` not m flags.
     """
+    check_state_space("tracklab.filters.ekf", Q=Q, R=R, f=f, h=h, angle_mask=angle_mask)
     params = {"Q": jnp.asarray(Q), "R": jnp.asarray(R)}
 
     def time_update(p, g):

@@ -26,6 +26,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from tracklab.checks import check_positive, check_state_space, is_real, is_traced, refuse, wrong_type
 from tracklab.filters.blocks import Gaussian, innovation, innovation_update
 from tracklab.filters.core import Filter, Out, masked_meas
 from tracklab.filters.kind import ANY_SENSOR, NOISE, Entry, FilterKind, noise
@@ -89,7 +90,16 @@ def strong_tracking(f, h, Q, R, *, rho=0.95, b=1.0, angle_mask=None) -> Filter:
 
     ``f`` and ``h`` may be linear (``lambda x: F @ x``) or not; innovation
     components flagged in ``angle_mask`` are wrapped to (-π, π].
+
+    Refused in one line naming the argument: Q, R, f, h or ``angle_mask`` as ``tracklab.filters.ekf``
+    refuses them (``checks.check_state_space``); ``rho`` not in (0, 1]; ``b`` not a finite number > 0.
     """
+    where = "tracklab.filters.strong_tracking"
+    check_state_space(where, Q=Q, R=R, f=f, h=h, angle_mask=angle_mask)
+    if not is_traced(rho) and not (is_real(rho) and 0 < float(rho) <= 1):
+        raise (refuse if is_real(rho) else wrong_type)(where, "rho", rho, "must be a forgetting factor in (0, 1]")
+    if not is_traced(b):
+        check_positive(where, "b", b)
     params = {"Q": jnp.asarray(Q), "R": jnp.asarray(R), "rho": jnp.asarray(rho, float), "b": jnp.asarray(b, float)}
     return _stf(f, h, lambda p: p["Q"], lambda p: p["R"], angle_mask, params)
 

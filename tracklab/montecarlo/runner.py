@@ -52,6 +52,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from tracklab.checks import check_key
 from tracklab.montecarlo import programs
 from tracklab.montecarlo.samples import RunSamples
 from tracklab.runtime import not_in_xla_flags
@@ -314,17 +315,17 @@ def run(world: World, params, runs: int, key, *, precision: str = "float64", poi
         enough: Callable[[Any, RunSamples | None, int], bool] | None = None) -> Outcome:
     """Run ``runs`` Monte-Carlo runs of ``world`` with ``params``, chunk by chunk; the sums of all runs.
 
-    ``key``: an integer seed or a JAX key. ``precision = "float32"`` traces and runs the world in
-    single precision (JAX's 64-bit mode off for it); the sums are added on the host in float64
-    either way. ``points``: ``params`` holds that many parameter sets along a leading axis, and
-    every sum has that leading axis. ``progress(done, runs)`` is called after every chunk.
+    ``key``: an integer seed, a JAX key or a raw uint32[2] key, one and the same key
+    (``checks.check_key``). ``precision = "float32"`` traces and runs the world in single
+    precision (JAX's 64-bit mode off for it); the sums are added on the host in float64 either
+    way. ``points``: ``params`` holds that many parameter sets along a leading axis, and every
+    sum has that leading axis. ``progress(done, runs)`` is called after every chunk.
     ``enough(sums, samples, done)``, when given, is asked after every chunk: the run stops as soon
     as it says yes (``runs`` is then the most it may take), and ``Outcome.runs`` is what ran.
     """
     t_start = time.perf_counter()
     with jax.enable_x64(precision == "float64"):
-        if isinstance(key, (int, np.integer)):
-            key = jax.random.key(int(key))
+        key = check_key("runner.run", "key", key)
         params = in_precision(params, precision)
         fn, compile_s = program(world, params, precision, points)
         B = share(world)  # this process's runs of every chunk

@@ -40,19 +40,22 @@ def results_path(exp, out=None) -> Path:
     """Where an experiment's results go: ``out``, or results/<name>/."""
     return Path(out) if out is not None else Path("results") / exp.name
 
-def run_into_folder(exp, out, runs, max_memory, simulate, write):
+def run_into_folder(exp, out, runs, max_memory, simulate, write, where=None):
     """What ``run`` is for every kind of experiment: the output folder and the memory need checked
     before anything compiles, then ``simulate()``, then ``write(its result, folder)`` into a
     temporary folder swapped in whole; returns what ``write`` returns (the statistics). In a run of
     several processes every one checks and simulates, and process 0 alone writes (the others
-    return None)."""
-    file = exp.path if exp.path is not None else "tracklab.experiment"  # what a refusal names
-    out = check_results_folder(results_path(exp, out), file)
+    return None). A refusal of the folder names ``where`` and its argument ``out`` (the Python
+    method: ``Experiment.run``), or without ``where`` the experiment file and ``--out``."""
+    field = "--out" if where is None else "out"
+    if where is None and exp.path is None:
+        where = "tracklab.experiment"
+    out = check_results_folder(results_path(exp, out), exp.path, field, where)
     exp.check_memory(runs, max_memory)
     result = simulate()
     if not writes():
         return None
-    with atomic_folder(out, file) as tmp:
+    with atomic_folder(out, exp.path, field, where) as tmp:
         return write(result, tmp)
 
 def write_json(path: Path, doc):

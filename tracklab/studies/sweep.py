@@ -84,6 +84,18 @@ def check_sweep(exp, axes: list[Axis], runs=None, limit=None):
     names = [a.name for a in axes]
     if len(set(names)) != len(names):
         raise ConfigError(exp.path, "--grid", " ".join(names), "each parameter may appear once")
+    raw, seen = copy.deepcopy(exp.raw), {}
+    for a in axes:  # one number named twice, by its label and by its index
+        if a.path is None or a.path[0] == "study":
+            continue
+        try:
+            where = (id(table_of(raw, a.path, create=True)), a.path[2])
+        except ValueError:
+            continue  # named in one line below
+        if where in seen:
+            raise ConfigError(exp.path, "--grid", f"{seen[where]} {a.name}", "name the same number: each number may "
+                              "appear once")
+        seen[where] = a.name
     for a in axes:
         if a.path is None and not _scales(exp, a.name):
             raise ConfigError(exp.path, "--grid", a.name, f"no filter of this experiment declares a scalable "

@@ -237,7 +237,9 @@ def objective(exp: Experiment, names, loss=None, labels=None) -> Objective:
         raise ValueError(f"tune: loss {loss!r}: must be one of {', '.join(losses)}")
     chosen = selection(exp, names, labels)
     if not chosen:
-        raise ValueError(f"no filter has any of the parameters {', '.join(names)}")
+        wanted = named(names)
+        raise ValueError(f"tune: no filter has any of the parameters {', '.join(map(str, wanted))}" if wanted
+                         else "tune: no parameter named: name at least one")
     structure = exp.structure()
     world = exp.world(structure)
     fn = runner.sharded(world)
@@ -293,7 +295,8 @@ def tune(exp, names, *, steps=200, lr=0.05, loss=None, runs_per_step=None, eval_
     ``every`` steps. Runs in float64 whatever JAX's global mode (``tracklab.runtime``).
 
     Refused before anything compiles, in one line naming the argument: ``exp`` not an experiment
-    or ``names`` not a name, a list of names or a dict (``TypeError``); ``steps``, ``every``,
+    or ``names`` not a name, a list of names or a dict of them (``TypeError``); ``names`` naming
+    no parameter (``{}``, ``[]``, ``""``, ``{label: []}``); ``steps``, ``every``,
     ``runs_per_step``, ``eval_runs`` not integers >= 1; ``lr`` not a finite number > 0; ``seed``
     not an integer in [0, 2³² − 1]; ``labels`` naming no unit of the experiment; ``progress``
     not callable; a name, label, loss or constraint ``selection``/``objective`` refuses."""
@@ -310,10 +313,18 @@ def _check(exp, names, *, steps, lr, runs_per_step, eval_runs, seed, labels, eve
     if not isinstance(exp, Experiment):
         raise wrong_type(where, "exp", exp, "must be an experiment (tracklab.experiment(…) or "
                          "tracklab.load_experiment(path))")
-    if not isinstance(names, (str, dict)) and not (isinstance(names, (list, tuple, set, frozenset))
-                                                   and all(isinstance(n, str) for n in names)):
-        raise wrong_type(where, "names", names, "must be a parameter name, a list of names, or {label: names "
-                         "or {leaf: constraint}}")
+    allowed = "must be a parameter name, a list of names, or {label: a name, a list of names or {leaf: constraint}}"
+    if not isinstance(names, (str, dict)) and not _name_list(names):
+        raise wrong_type(where, "names", names, allowed)
+    for label, wanted in (names.items() if isinstance(names, dict) else ()):
+        if not isinstance(wanted, (str, dict)) and not _name_list(wanted):
+            raise wrong_type(where, f"names[{label!r}]", wanted, "must be a parameter name, a list of names, or "
+                             "{leaf: constraint}")
+        if isinstance(wanted, dict) and not all(isinstance(n, str) for n in wanted):
+            raise wrong_type(where, f"names[{label!r}]", wanted, "must be {leaf name: constraint}, leaf names as "
+                             "tracklab.pytree.named_leaves spells them")
+    if not named(names):
+        raise refuse(where, "names", names, f"names no parameter: {allowed}")
     check_count(where, "steps", steps)
     check_positive(where, "lr", lr)
     check_count(where, "runs_per_step", runs_per_step, optional=True)
@@ -327,6 +338,21 @@ def _check(exp, names, *, steps, lr, runs_per_step, eval_runs, seed, labels, eve
             raise refuse(where, "labels", labels, f"must be None or a list of labels from: {', '.join(map(str, known))}")
     if progress is not None and not callable(progress):
         raise wrong_type(where, "progress", progress, "must be None or a function progress(step, losses, gradient norm)")
+
+
+def named(names) -> list[str]:
+    """The parameter names ``names`` holds: a name, a list of them, or {label: a name, a list of
+    them, or {leaf: constraint}}."""
+    if isinstance(names, str):
+        return [names] if names else []
+    if isinstance(names, dict):  # a leaf's name may be "" (the params themselves), a declared name not
+        return [n for w in names.values() for n in (list(w) if isinstance(w, dict) else named(w))]
+    return [n for n in names if n]
+
+
+def _name_list(names) -> bool:
+    """Whether ``names`` is a list (tuple, set) of parameter names."""
+    return isinstance(names, (list, tuple, set, frozenset)) and all(isinstance(n, str) for n in names)
 
 
 def _tune(exp, names, *, steps, lr, loss, runs_per_step, eval_runs, seed, labels, every, progress) -> TuneResult:

@@ -14,21 +14,56 @@ lets a scale factor multiply it.
 
 ``run`` is the same for every world: the output folder and the memory need checked before
 anything compiles, ``simulate`` (the statistics document), ``write`` (the results folder).
+``run``, ``simulate`` and ``monte_carlo`` (every world's) refuse a bad ``runs``, ``seed``,
+``precision``, ``chunk``, ``target_precision``, ``progress``, ``out`` or ``max_memory`` in one
+line naming the method and the argument, before anything compiles (``check_arguments``).
 """
 
 from __future__ import annotations
 
 import abc
+import functools
+import inspect
+import os
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
+from tracklab.checks import MAX_RUN_STEPS, MAX_RUNS, check_count, check_precision, is_real, refuse, wrong_type
 from tracklab.montecarlo import runner
 from tracklab.parameters import Param
 from tracklab.report.document import run_into_folder
 
 
+CHECKED_METHODS = ("run", "simulate", "monte_carlo")  # every world's: their arguments checked first
+
+
+def checking_arguments(method):
+    """``method`` (``run``, ``simulate``, ``monte_carlo``) with its arguments checked first
+    (``Experiment.check_arguments``), a refusal naming ``<class>.<method>``."""
+    signature = inspect.signature(method)
+
+    @functools.wraps(method)
+    def checked(self, *args, **kwargs):
+        given = signature.bind(self, *args, **kwargs).arguments
+        self.check_arguments(f"{type(self).__name__}.{method.__name__}", given)
+        return method(self, *args, **kwargs)
+
+    checked.checks_arguments = True
+    return checked
+
+
 class Experiment(abc.ABC):
-    """A validated experiment of any world (each world's is a dataclass with these fields)."""
+    """A validated experiment of any world (each world's is a dataclass with these fields).
+
+    Each world's ``run``, ``simulate`` and ``monte_carlo`` check their arguments first
+    (``check_arguments``): a subclass's own are wrapped as it is defined."""
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        for name in CHECKED_METHODS:
+            method = cls.__dict__.get(name)
+            if callable(method) and not getattr(method, "checks_arguments", False):
+                setattr(cls, name, checking_arguments(method))
 
     path: Path | None  # the experiment file (None: built in Python)
     name: str
@@ -166,6 +201,38 @@ class Experiment(abc.ABC):
     def check_memory(self, runs=None, limit=None):
         """ConfigError in one line (with what to shrink) when a run would pass the machine's memory or ``limit``."""
 
+    def check_arguments(self, where: str, given: Mapping[str, Any]):
+        """Refuse, in one line naming ``where`` (``Experiment.monte_carlo``) and the argument, what
+        ``given`` (argument name -> value, as called) holds of: ``runs`` (None: the experiment's;
+        else an integer in [1, 10⁸] with runs × steps <= 10¹²), ``seed`` (None or an integer in
+        [0, 2³² − 1]), ``precision`` (None, "float64" or "float32"), ``chunk`` (None or an integer
+        >= 1), ``target_precision`` (None or a relative half-width in (0, 1)), ``progress`` (None or
+        a function), ``out`` (None or a path), ``max_memory`` (None or a number of bytes >= 1)."""
+        if "runs" in given:
+            runs = check_count(where, "runs", given["runs"], 1, MAX_RUNS, optional=True)
+            if runs is not None and runs * self.samples_per_run > MAX_RUN_STEPS:
+                raise refuse(where, "runs", runs, f"runs x steps must be <= {MAX_RUN_STEPS:.0e} "
+                             f"({self.samples_per_run} steps a run)")
+        if "seed" in given:
+            check_count(where, "seed", given["seed"], 0, 2**32 - 1, optional=True)
+        if "precision" in given:
+            check_precision(where, given["precision"], optional=True)
+        if "chunk" in given:
+            check_count(where, "chunk", given["chunk"], optional=True)
+        target = given.get("target_precision")
+        if target is not None and not (is_real(target) and 0 < float(target) < 1):
+            allowed = "must be None or a relative half-width in (0, 1), e.g. 0.005"
+            raise (refuse if is_real(target) else wrong_type)(where, "target_precision", target, allowed)
+        progress = given.get("progress")
+        if progress is not None and not callable(progress):
+            raise wrong_type(where, "progress", progress, "must be None or a function progress(done, runs)")
+        out = given.get("out")
+        if out is not None and not isinstance(out, (str, os.PathLike)):
+            raise wrong_type(where, "out", out, "must be None (results/<name>/) or the path of the results folder")
+        if "max_memory" in given:
+            check_count(where, "max_memory", given["max_memory"], optional=True)
+
+    @checking_arguments
     def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None, max_memory=None,
             target_precision=None):
         """``tracklab run``: the results folder (default results/<name>/) and the memory need checked
@@ -173,4 +240,4 @@ class Experiment(abc.ABC):
         statistics document (None in a process other than 0 of a run of several)."""
         return run_into_folder(self, out, runs, max_memory,
                                lambda: self.simulate(runs, seed, progress, precision, target_precision),
-                               lambda doc, tmp: self.write(doc, tmp, figures))
+                               lambda doc, tmp: self.write(doc, tmp, figures), where=f"{type(self).__name__}.run")

@@ -14,6 +14,7 @@ from tracklab.checks import (
     check_count,
     check_covariance,
     check_filter,
+    check_key,
     check_positive,
     check_precision,
     numeric,
@@ -122,17 +123,20 @@ def monte_carlo(
     by all filters in that run. ``precision = "float32"`` traces and runs the
     simulation and the filters in single precision (JAX's 64-bit mode off for
     them); sums are accumulated on the host in float64 either way, and the
-    random draws are the same (made in float32 in both). ``windows`` (name -> (steps,)
-    bool mask) are where each run's largest one-step prediction error is taken.
+    random draws are the same (made in float32 in both). ``key``: an integer seed, a JAX key
+    (``jax.random.key``) or a raw uint32[2] one (``jax.random.PRNGKey``); run i draws from
+    ``fold_in(key, i)``. ``windows`` (name -> (steps,) bool mask) are where each run's largest
+    one-step prediction error is taken.
 
     Refused before anything compiles, in one line naming the argument: ``scenario`` not a
     tracklab scenario, or its ``dt`` not a finite number > 0; ``specs`` empty, or holding
     anything but ``FilterSpec``s around a ``tracklab.Filter``; ``runs`` or ``chunk`` not an
-    integer >= 1; ``P0_cv`` not (2·dim, 2·dim), not finite, not symmetric or not positive
-    definite; ``params`` not one per filter; ``precision`` neither "float64" nor "float32";
-    a ``windows`` mask not of the scenario's steps.
+    integer >= 1; ``key`` none of the forms above (an integer seed in [0, 2⁶⁴ − 1]); ``P0_cv``
+    not (2·dim, 2·dim), not finite, not symmetric or not positive definite; ``params`` not one
+    per filter; ``precision`` neither "float64" nor "float32"; ``windows`` not a dict, or a mask
+    in it not of the scenario's steps; ``progress`` not callable.
     """
-    _check(scenario, specs, runs, P0_cv, chunk, params, precision, windows)
+    key = _check(scenario, specs, runs, key, P0_cv, chunk, params, precision, windows, progress)
     if not isinstance(sensor, SensorSuite):
         sensor = SensorSuite((sensor,))
     chunk = int(chunk or default_chunk(scenario, sensor, runs=runs))
@@ -142,8 +146,8 @@ def monte_carlo(
     return run(structure, p, runs, key, progress=progress, precision=precision)
 
 
-def _check(scenario, specs, runs, P0_cv, chunk, params, precision, windows):
-    """``monte_carlo``'s refusals (see its doc)."""
+def _check(scenario, specs, runs, key, P0_cv, chunk, params, precision, windows, progress):
+    """``monte_carlo``'s refusals (see its doc); the key as the simulation's typed key."""
     where = "tracklab.monte_carlo"
     if not isinstance(scenario, Scenario):
         raise wrong_type(where, "scenario", scenario, "must be a tracklab scenario (tracklab.scenarios; "
@@ -153,6 +157,7 @@ def _check(scenario, specs, runs, P0_cv, chunk, params, precision, windows):
     check_precision(where, precision)
     check_count(where, "runs", runs)
     check_count(where, "chunk", chunk, optional=True)
+    key = check_key(where, "key", key)
     if isinstance(specs, (str, FilterSpec, Filter)) or not isinstance(specs, Sequence):
         raise wrong_type(where, "specs", specs, "must be a list of tracklab.FilterSpec(label, filter)")
     if not specs:
@@ -171,7 +176,12 @@ def _check(scenario, specs, runs, P0_cv, chunk, params, precision, windows):
         raise refuse(where, "P0_cv", numeric(where, "P0_cv", P0_cv), f"must be ({n}, {n}): the prior covariance of "
                      f"[x, ẋ, y, ẏ{', z, ż' if n == 6 else ''}] (CV layout)")
     check_covariance(where, "P0_cv", P0_cv)
+    if windows is not None and not isinstance(windows, dict):
+        raise wrong_type(where, "windows", windows, "must be None or a dict {name: (steps,) bool mask}")
+    if progress is not None and not callable(progress):
+        raise wrong_type(where, "progress", progress, "must be None or a function progress(done, runs)")
     for name, m in (windows or {}).items():
         if np.shape(m) != (steps,):
             raise refuse(where, f"windows[{name!r}]", np.asarray(m), f"must be a mask of the {steps} steps, "
                          f"shape ({steps},)")
+    return key

@@ -13,6 +13,7 @@ the steps: ``Trajectory(path, dt, steps, dim).simulate(None)[1:]``.
 from __future__ import annotations
 
 import functools
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -131,13 +132,18 @@ def evaluate(results, truth, *, dt: float, name: str = "recorded", window: tuple
     """The statistics document (what stats.json holds) of filters' results on recorded
     measurements against the truth; with ``out``, also the results folder (stats.json,
     table.md, table.csv, figures), written as ``tracklab run`` writes one. The arguments
-    are those of ``judge``, refused as it refuses them, before anything compiles."""
+    are those of ``judge``, refused as it refuses them, before anything compiles; ``out`` is
+    refused first, in one line naming it, when it is not a path or is a folder tracklab may not
+    write (one of the user's files in it, the working folder)."""
+    where = "tracklab.evaluate"
+    if out is not None and not isinstance(out, (str, os.PathLike)):
+        raise wrong_type(where, "out", out, "must be None (no files) or the path of the results folder to write")
+    folder = None if out is None else check_results_folder(out, None, "out", where)
     recorded, res = judge(results, truth, dt=dt, name=name, window=window, windows=windows, params=params)
-    if out is None:
-        return stats_document(recorded, res)
-    folder = check_results_folder(out, None)
     doc = stats_document(recorded, res)
-    with atomic_folder(folder, None) as tmp:
+    if folder is None:
+        return doc
+    with atomic_folder(folder, None, "out", where) as tmp:
         return write_results(doc, tmp, figures=figures)
 
 def judge(results, truth, *, dt: float, name: str = "recorded", window: tuple[int, int] | None = None,
