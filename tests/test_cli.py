@@ -402,3 +402,20 @@ def test_interrupted_run_leaves_previous_results_intact(tmp_path):
     assert (out / "stats.json").read_text() == previous
     assert sorted(p.name for p in out.iterdir()) == ["stats.json"]
     assert leftovers(tmp_path) == []
+
+
+def test_a_reader_that_stops_reading_does_not_stop_the_command():
+    """``tracklab run … | head -1``: once the pipe is closed what is printed is dropped, without an
+    error (the results are written all the same)."""
+    import os
+
+    from tracklab.cli import _Reader
+
+    read, write = os.pipe()
+    os.close(read)
+    stream = _Reader(open(write, "w", buffering=1))
+    for _ in range(3):
+        print("| a row of the table |", file=stream)
+    stream.flush()
+    assert stream.isatty() is False
+    stream.stream.close()

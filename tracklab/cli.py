@@ -420,11 +420,45 @@ def _end_processes(meeting, code):
     os._exit(status)
 
 
+class _Reader:
+    """Standard output for a reader that may stop reading (``tracklab run … | head``): once the
+    pipe is closed, what is printed is dropped and the command goes on (its results are written
+    all the same); every other error is the stream's own."""
+
+    def __init__(self, stream):
+        self.stream = stream
+
+    def _closed(self):
+        import os
+
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, self.stream.fileno())  # the C-level writes and the last flush too
+        os.close(devnull)
+
+    def write(self, text):
+        try:
+            return self.stream.write(text)
+        except BrokenPipeError:
+            self._closed()
+            return len(text)
+
+    def flush(self):
+        try:
+            self.stream.flush()
+        except BrokenPipeError:
+            self._closed()
+
+    def __getattr__(self, name):  # isatty, fileno, encoding, …: the stream's
+        return getattr(self.stream, name)
+
+
 def _main(argv) -> int:
     from tracklab.interrupts import interrupted
 
     from tracklab.runtime import configure
 
+    if argv is None and not isinstance(sys.stdout, _Reader):
+        sys.stdout = _Reader(sys.stdout)
     args = build_parser().parse_args(argv)
     raise_if_interrupted()  # one that came while JAX and the registries were imported
     configure()  # one CPU device per core, single-threaded Eigen, 64-bit mode (before JAX starts)
