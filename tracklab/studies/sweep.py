@@ -139,14 +139,12 @@ def point(exp, axes: list[Axis], values):
     params = at.params()
     return at, (at.scaled(params, factors) if factors else params)
 
-REPORTED = ("runs", "seed", "precision", "level", "window", "baseline", "steps")  # besides structure and params
-
-
 def _inputs(at, params) -> tuple:
     """What a grid point runs and reports with: equal for two points, equal statistics."""
     leaves, treedef = jax.tree_util.tree_flatten(params)
     numbers = tuple((np.shape(a), np.asarray(a).dtype.name, np.asarray(a).tobytes()) for a in leaves)
-    return (at.structure(16, 16), treedef, numbers) + tuple(getattr(at, k) for k in REPORTED)
+    return (at.structure(16, 16), treedef, numbers, at.runs, at.seed, at.precision, at.level, at.window, at.baseline,
+            at.steps)
 
 
 def check_points(exp, axes, values, made):
