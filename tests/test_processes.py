@@ -159,3 +159,46 @@ def test_processes_that_cannot_meet_or_disagree_stop_in_one_line(tmp_path):
             assert err.count("\n") == 1 and "Traceback" not in err and "@ 0x" not in err, (name, err)
             assert "|" not in out, (name, out)  # no table printed
     assert not [p for p in tmp_path.iterdir() if p.name != "exp.toml"]  # nothing written, nothing left behind
+
+
+def _pair(timeout=2.0):
+    """Process 0's and process 1's meetings, joined as after the start (no JAX)."""
+    a, b = socket.socketpair()
+    zero = processes.Meeting(processes.Settings("127.0.0.1", 1, 2, 0, timeout), {1: a})
+    one = processes.Meeting(processes.Settings("127.0.0.1", 1, 2, 1, timeout), {0: b})
+    for m in (zero, one):
+        m.watch()
+        m.started.set()
+    return zero, one
+
+
+def _finish_both(zero, one):
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(2) as pool:
+        ends = [pool.submit(processes.finish, m) for m in (zero, one)]
+        return [e.result(timeout=30) for e in ends]
+
+
+def test_the_processes_end_together_or_say_who_is_missing():
+    """The end of a run of several processes (``processes.finish``), without JAX: both reach
+    their end and leave together; a peer that ended after saying it was done leaves process 0's
+    results whole (a note, exit 0) and JAX's shutdown barrier, which would wait for it, skipped;
+    process 0 gone leaves the peer with one line and exit 1."""
+    assert _finish_both(*_pair()) == [None, None]
+
+    zero, one = _pair()
+    one.ending.set()  # the peer reaches its end, says it is done, then is gone
+    processes._send(one.peers[0], {"done": True})
+    one.peers[0].shutdown(socket.SHUT_RDWR)
+    time.sleep(0.2)
+    status, line = processes.finish(zero)
+    assert status == 0 and "process 1 of 2 ended before the end" in line and "complete" in line
+
+    zero, one = _pair()
+    one.ending.set()  # the peer waits at its end; process 0 is gone before its own
+    zero.ending.set()
+    zero.peers[1].shutdown(socket.SHUT_RDWR)
+    time.sleep(0.2)
+    status, line = processes.finish(one)
+    assert status == 1 and line.startswith("error: process 0") and "\n" not in line

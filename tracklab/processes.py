@@ -81,6 +81,8 @@ class Meeting:
         self.gone: dict[int, str] = {}  # the peers that ended without reaching theirs, and how
         self.ending = threading.Event()  # this process reached its end (``finish``)
         self.started = threading.Event()  # JAX's runtime connected every process
+        self.last: dict[int, dict] = {}  # what each said at its end
+        self.closed: set[int] = set()  # those whose connection ended after they reached their end
 
     def watch(self):
         for pid, conn in self.peers.items():
@@ -92,7 +94,13 @@ class Meeting:
         except (TimeoutError, ConnectionError, OSError):
             message = {}
         if message.get("done"):
+            self.last[pid] = message
             self.done[pid].set()
+            try:  # nothing more comes: the connection's end, once the other process has ended
+                _receive(conn, None, f"process {pid}")
+            except (TimeoutError, ConnectionError, OSError):
+                pass
+            self.closed.add(pid)
             return
         failed = message.get("failed")
         self.gone[pid] = f"stopped with exit status {failed}" if failed else "ended"
@@ -400,36 +408,53 @@ def start(s: Settings | None, what: dict | None = None) -> Meeting | None:
 
 def finish(meeting: Meeting | None, status: int = 0) -> tuple[int, str] | None:
     """This process's end (``status``: its exit status so far). The processes meet once more
-    (see the module's doc) and, when all were there, leave ``jax.distributed``: None. Otherwise
-    (another process ended first, or this one failed) JAX's shutdown, which would wait for the
-    missing ones, is skipped and the caller ends the process with ``os._exit``: returns the exit
-    status and a line to print ("" when there is nothing to add)."""
+    (see the module's doc) and, when all are there, leave ``jax.distributed`` together: None.
+    Otherwise (another process ended first, or this one failed) JAX's shutdown, which would wait
+    for the missing ones, is skipped and the caller ends the process with ``os._exit``: returns
+    the exit status and a line to print ("" when there is nothing to add).
+
+    The peers say they are done and wait for process 0; process 0 waits for every peer (within
+    the timeout), checks that none has gone since, and then tells them all whether they leave
+    JAX's runtime together or each on its own (a peer gone: its barrier would wait forever)."""
     if meeting is None:
         return None
     s = meeting.settings
     meeting.ending.set()
-    for conn in meeting.peers.values():
-        _answer(conn, {"done": True} if status == 0 else {"failed": status}, close=False)
-    if status != 0:  # the others stop when they read it: give them a moment to, before JAX's service is gone
-        until = time.monotonic() + min(5.0, s.timeout)
-        for event in meeting.done.values():
+    if status != 0:
+        for conn in meeting.peers.values():
+            _answer(conn, {"failed": status}, close=False)
+        until = time.monotonic() + min(5.0, s.timeout)  # the others stop when they read it: a moment for them to
+        for event in meeting.done.values():  # read it, before JAX's service is gone with this process
             event.wait(max(0.0, until - time.monotonic()))
         return status, ""
-    deadline = time.monotonic() + (s.timeout if s.process_id == 0 else 10 * s.timeout)
+    if s.process_id != 0:
+        _answer(meeting.peers[0], {"done": True}, close=False)
+        meeting.done[0].wait(10 * s.timeout)
+        together = 0 not in meeting.gone and meeting.done[0].is_set() and meeting.last.get(0, {}).get("together")
+        meeting.peers[0].close()
+        if together:
+            import jax
+
+            jax.distributed.shutdown()
+            return None
+        if 0 in meeting.last:  # process 0 ended, with another process gone
+            return 0, ""
+        return 1, f"error: process 0 at {s.coordinator} ended before the end of the run (see its own output)"
+    deadline = time.monotonic() + s.timeout
     for event in meeting.done.values():
         event.wait(max(0.0, deadline - time.monotonic()))
-    gone = sorted(pid for pid in meeting.peers if pid in meeting.gone or not meeting.done[pid].is_set())
+    gone = sorted(pid for pid in meeting.peers
+                  if pid in meeting.gone or pid in meeting.closed or not meeting.done[pid].is_set())
     for conn in meeting.peers.values():
-        conn.close()
+        _answer(conn, {"done": True, "together": not gone})
     if not gone:
         import jax
 
         jax.distributed.shutdown()
         return None
-    if s.process_id == 0:  # every exchange of sums is behind it: what it wrote is whole
-        return 0, (f"note: process{'es' if len(gone) > 1 else ''} {', '.join(map(str, gone))} of {s.processes} ended "
-                   f"before the end, after the last exchange of results: the results are complete")
-    return 1, f"error: process 0 at {s.coordinator} ended before the end of the run (see its own output)"
+    # every exchange of sums is behind process 0 here: what it wrote is whole
+    return 0, (f"note: process{'es' if len(gone) > 1 else ''} {', '.join(map(str, gone))} of {s.processes} ended "
+               f"before the end, after the last exchange of results: the results are complete")
 
 
 _RUNTIME_NOISE = re.compile(rb"^(\s*$|[IWEF]\d{4} |\*\*\* |\s+@\s+0x|\[Gloo\]|Additional GRPC error|:UNKNOWN:|RPC: /)")
