@@ -33,10 +33,15 @@ MAX_RUNS = 100_000_000  # runs of one call, from a file or from Python
 MAX_RUN_STEPS = 10**12  # runs × steps of one call
 
 
+def _shaped(a) -> bool:
+    """Whether ``a`` looks like an array (a shape and a dtype: NumPy's, JAX's, a tracer)."""
+    return hasattr(a, "shape") and hasattr(a, "dtype")
+
+
 def brief(value, limit: int = 120) -> str:
     """``value`` written out in one line, an array's entries elided past a few."""
     a = None
-    if isinstance(value, (np.ndarray, np.generic)) or (hasattr(value, "shape") and hasattr(value, "dtype")):
+    if isinstance(value, (np.ndarray, np.generic)) or _shaped(value):
         try:
             a = np.asarray(value)
         except Exception:  # noqa: BLE001 - shaped, but no array: written as its repr
@@ -129,7 +134,7 @@ def numeric(where: str, name: str, a) -> np.ndarray:
     try:
         arr = np.asarray(a)
     except Exception:  # noqa: BLE001 - whatever the object is, it is not an array of numbers
-        if hasattr(a, "shape") and hasattr(a, "dtype"):  # a JAX tracer: no values to check
+        if is_traced(a):  # no values to check
             raise wrong_type(where, name, a, "must be a concrete array of real numbers (its values are checked "
                              "before anything compiles: not a value traced inside jit, grad or vmap)") from None
         arr = None
@@ -145,30 +150,30 @@ def _at(name: str, shape, flat_index: int) -> str:
     return f"{name}[{', '.join(str(int(i)) for i in np.unravel_index(flat_index, shape))}]"
 
 
+def _refuse_first(where: str, name: str, arr: np.ndarray, bad: np.ndarray, allowed: str) -> np.ndarray:
+    """``arr``, or the refusal of its first entry marked ``bad``, named by its index."""
+    if bad.any():
+        i = int(np.argmax(bad.ravel()))
+        raise refuse(where, _at(name, arr.shape, i), arr.ravel()[i], allowed)
+    return arr
+
+
 def check_finite(where: str, name: str, a) -> np.ndarray:
     """``a`` as a float64 array if every entry is finite (a mean, a truth)."""
     arr = numeric(where, name, a)
-    bad = ~np.isfinite(arr)
-    if bad.any():
-        i = int(np.argmax(bad.ravel()))
-        raise refuse(where, _at(name, arr.shape, i), arr.ravel()[i], "must be finite (no NaN or ±inf)")
-    return arr
+    return _refuse_first(where, name, arr, ~np.isfinite(arr), "must be finite (no NaN or ±inf)")
 
 
 def check_measurements(where: str, name: str, z) -> np.ndarray:
     """``z`` as a float64 array if it holds no ±inf (a NaN is an absent measurement)."""
     arr = numeric(where, name, z)
-    bad = np.isinf(arr)
-    if bad.any():
-        i = int(np.argmax(bad.ravel()))
-        raise refuse(where, _at(name, arr.shape, i), arr.ravel()[i],
-                     "must be finite or NaN (a row of NaN is a missed detection), not ±inf")
-    return arr
+    return _refuse_first(where, name, arr, np.isinf(arr),
+                         "must be finite or NaN (a row of NaN is a missed detection), not ±inf")
 
 
 def is_traced(a) -> bool:
     """Whether ``a`` is a value traced inside ``jit``, ``grad`` or ``vmap`` (its shape known, its values not)."""
-    if not (hasattr(a, "shape") and hasattr(a, "dtype")) or isinstance(a, (np.ndarray, np.generic)):
+    if not _shaped(a) or isinstance(a, (np.ndarray, np.generic)):
         return False
     import jax
 

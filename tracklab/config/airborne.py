@@ -88,12 +88,9 @@ from tracklab.config.fields import (
 from tracklab.errors import ConfigError
 from tracklab.worlds.airborne.closed_loop import MRAD
 from tracklab.worlds.airborne.engagement import Engagement, nominal_range
-from tracklab.worlds.airborne.experiment import (
-    MAX_TICKS,
-    AirborneExperiment,
-    TrackerConfig,
-)
+from tracklab.worlds.airborne.experiment import MAX_TICKS, AirborneExperiment
 from tracklab.worlds.airborne.registry import TRACKERS
+from tracklab.worlds.protocol import UnitConfig
 from tracklab.worlds.airborne.tracker import Setting, Timing
 
 
@@ -204,10 +201,10 @@ def parse_airborne(f: Path, raw: dict) -> AirborneExperiment:
         label = ts.label("label", kind.name)
         check_unique(f, f"tracker[{i}].label", label, trimmed, "trackers")
         labels.add(label)
-        choices = {k: ts.string(k, allowed[0], choices=allowed) for k, allowed in kind.choices.items()}
+        options = {k: ts.string(k, allowed[0], choices=allowed) for k, allowed in kind.choices.items()}
         numbers = declared_numbers(ts, kind.params, setting)
         ts.check_unknown()
-        trackers.append(TrackerConfig(label, kind.name, numbers, choices))
+        trackers.append(UnitConfig(label, kind.name, numbers, options))
     rp = Section(f, "report", raw.get("report", {}))
     windows = _read_windows(f, rp, duration, disturbance)
     level, baseline = level_and_baseline(rp, [t.label for t in trackers], "trackers")

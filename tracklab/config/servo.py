@@ -69,9 +69,9 @@ from tracklab.worlds.servo.experiment import (
     TARGET_KINDS,
     TICK_RANGE,
     Case,
-    EstimatorConfig,
     ServoExperiment,
 )
+from tracklab.worlds.protocol import UnitConfig
 from tracklab.worlds.servo.loops import MODES, AzimuthAxis
 from tracklab.worlds.servo.registry import ESTIMATORS
 
@@ -144,7 +144,7 @@ def parse_servo(f: Path, raw: dict) -> ServoExperiment:
             raise ConfigError(f, f"estimator[{i}].label", label, "must not be 'perfect' (a case's ideal estimator)")
         check_unique(f, f"estimator[{i}].label", label, trimmed, "estimators")
         labels.add(label)
-        cfg = EstimatorConfig(label, kind.name, declared_numbers(es, kind.params), declared_options(es, kind.options))
+        cfg = UnitConfig(label, kind.name, declared_numbers(es, kind.params), declared_options(es, kind.options))
         es.check_unknown()
         estimators.append(cfg)
     cases, case_labels, case_trimmed = [], set(), set()

@@ -174,8 +174,9 @@ def plot_figures(doc, folder: Path):
     axes_names = doc.get("axes", AXES)
     dim = sum(1 for a in axes_names if f"rmse_{a}" in next(iter(filters.values()))["series"])
     st = styles(labels, len(t))
-    ctx = dict(doc=doc, t=t, filters=filters, st=st, dim=dim, folder=folder, plt=plt,
-               title=f"{doc['name']} — {doc['runs']} runs", w=_window_slice(doc, t))
+    ctx = dict(doc=doc, t=t, filters=filters, st=st, dim=dim, folder=folder, plt=plt, AX=axes_names,
+               pu=doc.get("units", ("m", "m/s"))[0], title=f"{doc['name']} — {doc['runs']} runs",
+               w=_window_slice(doc, t))
     _rmse(ctx)
     _rmse_axes(ctx)
     _mean_error(ctx)
@@ -237,9 +238,7 @@ def _rmse(ctx):
 
 def _rmse_axes(ctx):
     """Per-axis position RMSE with bands and the per-axis PCRLB (the papers' panels)."""
-    doc, t, filters, st, dim = ctx["doc"], ctx["t"], ctx["filters"], ctx["st"], ctx["dim"]
-    AX = doc.get("axes", AXES)
-    pu = doc.get("units", ("m", "m/s"))[0]
+    doc, t, filters, st, dim, AX, pu = (ctx[k] for k in ("doc", "t", "filters", "st", "dim", "AX", "pu"))
     fig, axs = panel_grid(ctx["plt"], dim, 1)
     for a in range(dim):
         ax = axs[a, 0]
@@ -261,9 +260,7 @@ def _rmse_axes(ctx):
 
 def _mean_error(ctx):
     """Mean error per axis with its band: a bias is real where the band leaves zero."""
-    doc, t, filters, st, dim = ctx["doc"], ctx["t"], ctx["filters"], ctx["st"], ctx["dim"]
-    AX = doc.get("axes", AXES)
-    pu = doc.get("units", ("m", "m/s"))[0]
+    doc, t, filters, st, dim, AX, pu = (ctx[k] for k in ("doc", "t", "filters", "st", "dim", "AX", "pu"))
     main, out = split_outliers({l: float(np.nanmax(np.abs(np.concatenate(
         [arr(f["series"][f"mean_err_{AX[a]}"])[ctx["w"]] for a in range(dim)]))) or np.nan) for l, f in filters.items()})
     cols = [main] + ([out] if out else [])
@@ -288,9 +285,7 @@ def _mean_error(ctx):
 
 def _pred_error(ctx):
     """One-step prediction RMS error per axis (paper 004's Fig. 3), named windows shaded."""
-    doc, t, filters, st, dim = ctx["doc"], ctx["t"], ctx["filters"], ctx["st"], ctx["dim"]
-    AX = doc.get("axes", AXES)
-    pu = doc.get("units", ("m", "m/s"))[0]
+    doc, t, filters, st, dim, AX, pu = (ctx[k] for k in ("doc", "t", "filters", "st", "dim", "AX", "pu"))
     shown = {l: f for l, f in filters.items() if np.isfinite(arr(f["series"]["pred_rmse_" + AX[0]])).any()}
     if not shown:
         return
@@ -394,11 +389,10 @@ def cdf_panel(ax, shown, st, key, pct_key=None):
 
 def _error_cdf(ctx):
     """P(a run's RMS position error ≤ x): what a fire-control engineer quotes."""
-    doc, filters, st = ctx["doc"], ctx["filters"], ctx["st"]
+    filters, st, pu = ctx["filters"], ctx["st"], ctx["pu"]
     shown = {l: f for l, f in filters.items() if f.get("cdf")}
     if not shown:
         return
-    pu = doc.get("units", ("m", "m/s"))[0]
     fig, axs = panel_grid(ctx["plt"], 1, 1, height=3.6)
     ax = axs[0, 0]
     groups = cdf_panel(ax, shown, st, "err_pos", "err_pos_p{p}")

@@ -43,11 +43,12 @@ from tracklab.memory import check
 from tracklab.montecarlo import runner
 
 
-def _path_of(exp, a: Axis):
-    """The file's value at a PATH axis (None when the file leaves it to its default); ConfigError
-    in one line for a PATH that names no number of the file."""
+def _table_of(exp, a: Axis, raw: dict) -> dict:
+    """The table of ``raw`` (a copy of the file's) that a PATH axis's number lives in (the number
+    may be absent: the file leaves it to its default); ConfigError in one line for a PATH that
+    names no number of the file."""
     try:
-        table = table_of(copy.deepcopy(exp.raw), a.path, create=True)
+        table = table_of(raw, a.path, create=True)
     except ValueError as e:
         raise ConfigError(exp.path, "--grid", a.name, str(e)) from None
     v = table.get(a.path[2])
@@ -55,7 +56,7 @@ def _path_of(exp, a: Axis):
         kind = type(v).__name__.replace("str", "a string").replace("list", "a list").replace("dict", "a table")
         raise ConfigError(exp.path, "--grid", a.name, f"is not a number in the file (it is {kind}): only numbers "
                           "can be swept")
-    return v
+    return table
 
 def grid_points(axes: list[Axis]) -> int:
     return int(np.prod([len(a.values) for a in axes], dtype=float))
@@ -84,18 +85,7 @@ def check_sweep(exp, axes: list[Axis], runs=None, limit=None):
     names = [a.name for a in axes]
     if len(set(names)) != len(names):
         raise ConfigError(exp.path, "--grid", " ".join(names), "each parameter may appear once")
-    raw, seen = copy.deepcopy(exp.raw), {}
-    for a in axes:  # one number named twice, by its label and by its index
-        if a.path is None or a.path[0] == "study":
-            continue
-        try:
-            where = (id(table_of(raw, a.path, create=True)), a.path[2])
-        except ValueError:
-            continue  # named in one line below
-        if where in seen:
-            raise ConfigError(exp.path, "--grid", f"{seen[where]} {a.name}", "name the same number: each number may "
-                              "appear once")
-        seen[where] = a.name
+    raw, seen = copy.deepcopy(exp.raw), {}  # the number each PATH names: (its table, its field) -> the axis
     for a in axes:
         if a.path is None and not _scales(exp, a.name):
             raise ConfigError(exp.path, "--grid", a.name, f"no filter of this experiment declares a scalable "
@@ -104,7 +94,11 @@ def check_sweep(exp, axes: list[Axis], runs=None, limit=None):
             raise ConfigError(exp.path, "--grid", a.name, "a [[study]] table's numbers set how that study runs (tracklab "
                               "reproduce), not the experiment: sweep a number of the experiment's own tables")
         if a.path is not None:
-            _path_of(exp, a)
+            where = (id(_table_of(exp, a, raw)), a.path[2])
+            if where in seen:  # by its label and by its index
+                raise ConfigError(exp.path, "--grid", f"{seen[where]} {a.name}", "name the same number: each number "
+                                  "may appear once")
+            seen[where] = a.name
         if a.path == ("experiment", None, "runs") and runs is not None:
             raise ConfigError(exp.path, "--runs", runs, f"the grid sets each point's runs ({a.name}): give one of them")
     if exp.trained_first():

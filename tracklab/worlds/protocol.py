@@ -25,6 +25,7 @@ import abc
 import functools
 import inspect
 import os
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -35,6 +36,18 @@ from tracklab.report.document import run_into_folder
 
 
 CHECKED_METHODS = ("run", "simulate", "monte_carlo")  # every world's: their arguments checked first
+
+
+@dataclass(frozen=True)
+class UnitConfig:
+    """One unit's table of a closed-loop file (a [[tracker]], an [[estimator]]), read as its kind
+    declares: its numbers (name -> value, program inputs) and its options (field -> value, what
+    its code is compiled for)."""
+
+    label: str
+    kind: str
+    numbers: dict = field(default_factory=dict)
+    options: dict = field(default_factory=dict)
 
 
 def checking_arguments(method):

@@ -27,16 +27,6 @@ from tracklab.worlds.airborne.tracker import Setting, Timing
 MAX_TICKS = 10**7  # radar samples per run (sample_dt against duration)
 
 
-@dataclass(frozen=True)
-class TrackerConfig:
-    """One [[tracker]] table, read as its kind declares (``registry.TRACKERS``)."""
-
-    label: str
-    kind: str
-    numbers: dict = field(default_factory=dict)  # name -> value: the numbers its kind declares
-    choices: dict = field(default_factory=dict)  # field -> value: its structural choices
-
-
 @dataclass
 class AirborneExperiment(protocol.Experiment):
     path: Path
@@ -54,7 +44,7 @@ class AirborneExperiment(protocol.Experiment):
     gains: tuple
     acquisition: tuple  # rad, rad/s, m, m/s
     disturbance: tuple | None  # (time s, rad)
-    trackers: list
+    trackers: list[protocol.UnitConfig]
     windows: dict  # name -> (t0, t1)
     raw: dict
     precision: str = "float64"
@@ -114,7 +104,7 @@ class AirborneExperiment(protocol.Experiment):
         """What the compiled program depends on: timing, periods, jolt tick, Singer on/off, the
         trackers' kinds and choices, and the chunk size (by default from the memory budget and ``runs``)."""
         jolt_tick = int(round(self.disturbance[0] / self.sample_dt)) if self.disturbance is not None else -1
-        trackers = tuple(airborne_world.TrackerSpec(tc.label, tc.kind, tuple(sorted(tc.choices.items())))
+        trackers = tuple(airborne_world.TrackerSpec(tc.label, tc.kind, tuple(sorted(tc.options.items())))
                          for tc in self.trackers)
         return airborne_world.AirborneStructure(trackers, self.timing(), self.steps, jolt_tick, self.singer,
                                                 int(chunk or self.chunk or self.default_chunk(runs)))

@@ -48,16 +48,6 @@ TICK_RANGE = (1e-4, 2e-3)  # s
 CAMERA_LOOPS = ("double_loop", "velocity_lag")  # modes whose position loop is closed through the camera
 
 @dataclass(frozen=True)
-class EstimatorConfig:
-    """One [[estimator]] table, read as its kind declares (``registry.ESTIMATORS``)."""
-
-    label: str
-    kind: str
-    numbers: dict = field(default_factory=dict)  # name -> value: the numbers its kind declares
-    options: dict = field(default_factory=dict)  # name -> value: its structural fields
-
-
-@dataclass(frozen=True)
 class Case:
     label: str
     mode: str
@@ -88,7 +78,7 @@ class ServoExperiment(protocol.Experiment):
     settle: float
     accel_ff: float
     target: dict
-    estimators: list[EstimatorConfig]
+    estimators: list[protocol.UnitConfig]
     cases: list[Case]
     raw: dict
     also_runs: tuple[int, ...] = ()
@@ -136,15 +126,15 @@ class ServoExperiment(protocol.Experiment):
         """What the estimators' kinds make their code and numbers with."""
         return Setting(self.frame_dt, max(self.noise, 1e-3) / 3600.0, self.target_scale())
 
-    def estimator_structure(self, cfg: EstimatorConfig):
+    def estimator_structure(self, cfg: protocol.UnitConfig):
         return ESTIMATORS[cfg.kind].structure(self.setting(), cfg.options)
 
-    def estimator_params(self, cfg: EstimatorConfig, numbers=None):
+    def estimator_params(self, cfg: protocol.UnitConfig, numbers=None):
         """An estimator's parameters from its numbers (``numbers``: in place of its table's)."""
         kind = ESTIMATORS[cfg.kind]
         return kind.numbers(self.setting(), self.estimator_structure(cfg), {**cfg.numbers, **(numbers or {})}, cfg.options)
 
-    def build_estimator(self, cfg: EstimatorConfig):
+    def build_estimator(self, cfg: protocol.UnitConfig):
         """An estimator with its parameters (what a training starts from)."""
         est = ESTIMATORS[cfg.kind].build(self.frame_dt, self.estimator_structure(cfg))
         return Estimator(est.filter, est.ahead, self.estimator_params(cfg), est.filter_net)
@@ -271,11 +261,11 @@ class ServoExperiment(protocol.Experiment):
             return runs_per_step * self.run_bytes
         return runs_per_step * self.ticks * len(self.cases) * 40 * 8.0
 
-    def trains(self, e: EstimatorConfig) -> bool:
+    def trains(self, e: protocol.UnitConfig) -> bool:
         """Whether an estimator is trained before the Monte-Carlo runs (a DEKF with ``train_steps``)."""
         return e.options.get("train_steps", 0) > 0
 
-    def trained_first(self) -> list[EstimatorConfig]:
+    def trained_first(self) -> list[protocol.UnitConfig]:
         """The estimators a run trains before its Monte-Carlo runs."""
         return [e for e in self.estimators if self.trains(e)]
 
@@ -284,7 +274,7 @@ class ServoExperiment(protocol.Experiment):
         return [f"{e.label}: training w0 and λ first ({e.options['train_steps']} Adam steps of "
                 f"{e.options['train_runs']} runs each)" for e in self.trained_first()]
 
-    def train(self, cfg: EstimatorConfig, est, progress=None):
+    def train(self, cfg: protocol.UnitConfig, est, progress=None):
         """Train a DEKF estimator's initial weights and λ on the rate it feeds forward; held-out evaluation."""
         t0 = time.perf_counter()
         net = est.filter_net
