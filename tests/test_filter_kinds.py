@@ -49,8 +49,9 @@ def test_a_parameter_name_means_the_same_in_every_kind():
 
 def test_what_tune_and_sweep_accept():
     assert set(TUNABLE) == {"q", "r", "lam", "b", "q_e", "r_e", "r_guide", "pw0", "rho", "forget", "w0", "alpha", "beta",
-                            "gamma"}
-    assert set(SCALABLE) == {"q", "r", "lam", "alpha", "beta", "gamma", "rho", "b", "q_e", "r_e", "r_guide"}
+                            "gamma", "gate", "p_detect", "clutter_density", "p_survive", "existence0"}
+    assert set(SCALABLE) == {"q", "r", "lam", "alpha", "beta", "gamma", "rho", "b", "q_e", "r_e", "r_guide",
+                             "clutter_density"}
 
 
 def _inside(name, p: Param, rng):
@@ -107,6 +108,9 @@ def _minimal(kind) -> str:
     elif "cartesian" in kind.accepts:
         world = ('[scenario]\nkind = "constant_velocity"\ninitial = [0.0, 10.0, 1000.0, -5.0]\naccel_sigma = 0.5\n\n'
                  '[sensor]\nkind = "cartesian"\nsigma = 10.0\n')
+        if kind.scans:  # an association: a cluttered sensor and the track-loss test
+            world += 'clutter_density = 1e-4\nclutter_window = [100.0, 100.0]\n\n[track_loss]\ndistance = 50.0\n'
+
     else:
         world = '[scenario]\nkind = "crossing"\n\n[sensor]\nkind = "polar"\nsigma_r = 100.0\nsigma_angle = 0.003\n'
     return (f'[experiment]\nname = "minimal"\nruns = 2\ndt = 0.5\nsteps = 10\n\n{world}\n'

@@ -36,6 +36,7 @@ class FilterResult:
     valid: jax.Array | None  # (..., T) update happened
     dof: jax.Array | None  # (..., T) innovation components used
     aux: Any = None  # what the filter family adds (e.g. the STF's fading factor), per step
+    validated: Any = None  # a filter of scans: returns validated per step (tracklab.filters.association)
     layout: Any = None  # where position and velocity sit in x (the filter's; None: [x, ẋ, y, ẏ, …])
 
 

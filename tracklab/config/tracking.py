@@ -48,11 +48,13 @@ from tracklab.scenarios import (
 from tracklab.sensors import (
     SENSOR_SIGMAS,
     SENSORS,
+    Cluttered,
     CustomSensor,
     Sensor,
     SensorSuite,
 )
 from tracklab.toml_fields import sigma_list
+from tracklab.worlds.tracking.errors import TrackLoss
 from tracklab.worlds.tracking.experiment import Experiment, FilterConfig
 from tracklab.worlds.tracking.lanes import FilterSpec
 
@@ -107,13 +109,50 @@ def _build_sensors(f, parsed, dim, dt, steps, folders=()):
             sigma = sigma_list(f, f"{where}.sigma", sn.get("sigma"), dim)
         else:
             sigma = tuple(declared_numbers(sn, SENSORS[kind].params).values())
-        sn.check_unknown()
         frame_dim = 2 if kind == "mount" else dim  # a mount observes its two angles
         sensor = Sensor(kind, frame_dim, sigma, p_detect, name=name, dt=dt, period=period, offset=offset)
+        sensor = _clutter(f, where, sn, sensor)
+        sn.check_unknown()
         if not sensor.report_mask(steps).any():
             raise ConfigError(f, f"{where}.offset", offset, f"the sensor reports at no step: the run ends at {steps * dt:g} s")
         sensors.append(sensor)
+    cluttered = [where for (where, _, _), s in zip(parsed, sensors) if isinstance(s, Cluttered)]
+    if cluttered and len(sensors) > 1:
+        raise ConfigError(f, f"{cluttered[0]}.clutter_density", "...", "clutter needs the experiment's only sensor: "
+                          "several sensors with a cluttered one are not supported")
     return SensorSuite(tuple(sensors))
+
+
+CLUTTER_FIELDS = ("clutter_density", "max_returns", "clutter_window", "clutter_coverage")
+
+
+def _clutter(f, where, sn, sensor):
+    """``sensor`` with the false alarms its table declares (``sensors.Cluttered``), or as it is:
+    ``clutter_density`` (λ ≥ 0, per unit volume of the measurement space in the sensor's units),
+    ``max_returns`` (the scan's capacity, default 16) and the region, either ``clutter_window``
+    (half-widths about the target's measurement, one per component) or ``clutter_coverage``
+    ([[lo, hi], …] per component: a fixed box)."""
+    if not any(sn.has(k) for k in CLUTTER_FIELDS):
+        return sensor
+    m = sensor.m
+    density = sn.number("clutter_density", required=True, nonneg=True)
+    capacity = sn.integer("max_returns", 16, lo=1, hi=1024)
+    if sn.has("clutter_window") == sn.has("clutter_coverage"):
+        raise ConfigError(f, f"{where}.clutter_window", sn.get("clutter_window"), "give the clutter's region: either "
+                          f"clutter_window = [{m} half-widths about the target] or clutter_coverage = [[lo, hi] x {m}]")
+    if sn.has("clutter_window"):
+        half = sigma_list(f, f"{where}.clutter_window", sn.get("clutter_window"), m)
+        return Cluttered(sensor, density, half, None, capacity)
+    box = sn.get("clutter_coverage")
+    sn.used.add("clutter_coverage")
+    if (not isinstance(box, list) or len(box) != m
+            or any(not isinstance(b, list) or len(b) != 2 or any(isinstance(v, bool) or not isinstance(v, (int, float))
+                                                                  or not math.isfinite(v) for v in b) or not b[0] < b[1]
+                   for b in box)):
+        raise ConfigError(f, f"{where}.clutter_coverage", box, f"must be [[lo, hi] x {m}] with lo < hi, one per "
+                          f"component ({', '.join(sensor.names)})")
+    lo, hi = np.asarray(box, float).T
+    return Cluttered(sensor, density, tuple((hi - lo) / 2.0), tuple((hi + lo) / 2.0), capacity)
 
 
 def _timing(f, where, sn, dt):
@@ -135,7 +174,8 @@ def _own_sensor(f, where, sn, kind, name, dim, dt, steps, folders=()):
     returns a sensor (``tracklab.sensors.CustomSensor``, or a built-in ``Sensor``); the table's
     name, p_detect, period and offset apply to it."""
     p_detect, period, offset = _timing(f, where, sn, dt)
-    options = {k: sn.get(k) for k in sn.table if k not in ("kind", "name", "p_detect", "period", "offset")}
+    options = {k: sn.get(k) for k in sn.table if k not in ("kind", "name", "p_detect", "period", "offset")
+               + CLUTTER_FIELDS}
     sensor = factories.build(f, f"{where}.kind", kind, factories.Context(dt, steps, dim), options, folders)
     if not isinstance(sensor, (Sensor, CustomSensor)):
         raise ConfigError(f, f"{where}.kind", kind, f"the factory returned {type(sensor).__name__}: expected a "
@@ -148,6 +188,7 @@ def _own_sensor(f, where, sn, kind, name, dim, dt, steps, folders=()):
         raise ConfigError(f, f"{where}.kind", kind, f"the factory's sensor: {why}")
     if isinstance(sensor, CustomSensor):
         sensor = sensor.keyed()
+    sensor = _clutter(f, where, sn, sensor)
     if not sensor.report_mask(steps).any():
         raise ConfigError(f, f"{where}.offset", offset, f"the sensor reports at no step: the run ends at {steps * dt:g} s")
     return sensor
@@ -207,7 +248,7 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
     """Validate an open-loop experiment file's contents ``raw`` read from ``path``."""
     f = path = Path(path)
     check_sections(f, raw, ("experiment", "scenario", "sensor"),
-                   ("experiment", "scenario", "sensor", "filter", "prior", "report", "study"))
+                   ("experiment", "scenario", "sensor", "filter", "prior", "report", "study", "track_loss"))
     name, runs, seed, precision, ex = experiment_header(f, raw)
     max_runs, target = auto_runs(ex)
     runs = runs or max_runs
@@ -273,6 +314,8 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
         labels.add(fc.label)
         filters.append(fc)
 
+    loss = _track_loss(f, raw, suite)
+
     rp = Section(f, "report", raw.get("report", {}))
     w = rp.get("window", [1, steps])
     if (
@@ -291,7 +334,26 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
         path=path, name=name, runs=runs, seed=seed, dt=dt, steps=steps, chunk=chunk, scenario=scenario,
         sensor=suite, filters=filters, prior=prior, window=(w[0], w[1]), raw=raw, also_runs=tuple(also), precision=precision,
         pred_windows=pred_windows, studies=studies, level=level, baseline=baseline, target_precision=target,
+        track_loss=loss,
     )
+
+
+def _track_loss(f, raw, suite):
+    """[track_loss]: distance (in the scenario's position unit) and steps (default 5): a run's track is
+    lost at the first of ``steps`` consecutive steps whose position error is beyond ``distance``.
+    Required with a cluttered sensor; None when the file has none."""
+    cluttered = any(isinstance(s, Cluttered) for s in suite.sensors)
+    if "track_loss" not in raw:
+        if cluttered:
+            raise ConfigError(f, "[track_loss]", None, "is required with a cluttered sensor: distance = … (a track is "
+                              "lost after `steps` consecutive steps, default 5, with its position error beyond it)")
+        return None
+    if not isinstance(raw["track_loss"], dict):
+        raise ConfigError(f, "track_loss", raw["track_loss"], "must be a table: [track_loss] distance = …, steps = …")
+    tl = Section(f, "track_loss", raw["track_loss"])
+    loss = TrackLoss(tl.number("distance", required=True, positive=True), tl.integer("steps", 5, lo=1, hi=MAX_STEPS))
+    tl.check_unknown()
+    return loss
 
 
 def pred_windows_of(f, table, window, steps, dt):
@@ -421,6 +483,10 @@ def parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q, scenario=N
         seen = "several sensors" if mkind == "suite" else f"a '{mkind}' sensor"
         raise ConfigError(f, f"filter[{i}].kind", kind.name, f"needs a sensor of kind {' or '.join(kind.accepts)}, but sees {seen}")
 
+    cluttered = any(isinstance(s, Cluttered) for s in meas.sensors)
+    if cluttered and not kind.scans:
+        raise ConfigError(f, f"filter[{i}].kind", kind.name, "sees a cluttered sensor's scans: name an association, "
+                          f"kind = \"pdaf\" (or \"nn\", \"ipda\") with base = \"{kind.name}\"")
     entry = Entry(fs, kind, meas, dim=dim, dt=dt, accel_sigma=default_q, sigma_fields=SENSOR_SIGMAS.get(mkind, ()),
                   guide=guide_sensor)
     model, params, options = kind.read(entry)

@@ -27,6 +27,7 @@ from tracklab.filters.blocks import (
     wrap_angle,
 )
 from tracklab.filters.core import Filter, Meas, Out, Prior, masked_meas, measuring
+from tracklab.filters.association import ipda, nearest_neighbour, pdaf
 from tracklab.filters.kalman import (
     ekf,
     kf,
@@ -50,15 +51,17 @@ from tracklab.filters.unscented import model_ukf
 def build(kind, model, sensor, params, options=None) -> Filter:
     """Build an experiment filter of ``kind`` (its declaration: ``registry.KINDS``) for a motion model and a
     measurement model; parameters with a fixed default may be left out of ``params``. The filter
-    refuses, when traced, a measurement of other than the sensor's ``m`` components."""
+    refuses, when traced, a measurement of other than the sensor's ``m`` components (a filter of
+    scans, ``association``: a scan of returns of other than ``m`` components)."""
     k = KINDS[kind]
-    return measuring(k.build(model, sensor, k.with_defaults(params), dict(options or {})), sensor.m)
+    flt = k.build(model, sensor, k.with_defaults(params), dict(options or {}))
+    return flt if k.scans else measuring(flt, sensor.m)  # a filter of scans checks its scans' shape itself
 
 
 __all__ = [
     "Filter", "FilterKind", "Gaussian", "KINDS", "Meas", "Out", "Param", "Prior", "Update", "build", "ekf", "ekf_predict",
     "ekf_update", "growing_memory_alpha_beta", "growing_memory_alpha_beta_gamma", "imm_params", "innovation",
-    "innovation_update", "joseph_covariance", "kalata_alpha_beta", "kalata_alpha_beta_gamma", "kalman_filter", "kf",
-    "masked_meas", "model_alpha_beta", "model_error_space", "model_imm", "model_stf", "model_ukf", "noise_params", "predict",
+    "innovation_update", "ipda", "joseph_covariance", "kalata_alpha_beta", "kalata_alpha_beta_gamma", "kalman_filter", "kf",
+    "masked_meas", "model_alpha_beta", "model_error_space", "model_imm", "model_stf", "model_ukf", "nearest_neighbour", "noise_params", "pdaf", "predict",
     "strong_tracking", "tracking_index", "update", "wrap_angle",
 ]

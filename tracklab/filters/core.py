@@ -64,7 +64,9 @@ class Out(NamedTuple):
     * ``valid``: whether an update happened (default: True when ``nu`` is given);
     * ``dof``: how many innovation components it used (default: the length of ``nu``);
     * ``aux``: what a filter family adds (the strong tracking filter's fading factor, an
-      IMM's mode probabilities).
+      IMM's mode probabilities);
+    * ``validated``: a filter of scans (``association``): how many returns it validated (NaN at
+      a step with no scan).
     """
 
     x: jax.Array
@@ -75,6 +77,7 @@ class Out(NamedTuple):
     valid: jax.Array | None = None
     dof: jax.Array | None = None
     aux: Any = None
+    validated: jax.Array | None = None
 
 
 class Filter(NamedTuple):

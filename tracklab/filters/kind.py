@@ -81,6 +81,7 @@ class FilterKind:
     read: Callable[["Entry"], tuple[str, dict, dict]]  # -> (motion model, params, options)
     build: Callable[[Any, Any, dict, dict], Any]  # (motion model, measurement model, params, options) -> Filter
     guided: bool = False  # also sees a guide sensor, which the field ``guide`` names
+    scans: bool = False  # associates the returns of a scan (filters.association): z is (capacity, m)
 
     def with_defaults(self, params: dict) -> dict:
         """``params`` and every parameter it leaves out that has a fixed default."""

@@ -19,10 +19,15 @@ from tracklab.filters.strong_tracking import STF
 from tracklab.filters.imm import IMM
 from tracklab.filters.dual_ekf import DEKF
 from tracklab.filters.error_space import ERROR_SPACE
+from tracklab.filters.association import association_kinds
+
+# the Gaussian filters an association (nn, pdaf, ipda) may be built on
+NN, PDAF, IPDA = association_kinds({k.name: k for k in (KF, EKF, CMKF, SEQUENTIAL_EKF, POLAR_KF, UKF)})
 
 
 KINDS: dict[str, FilterKind] = {k.name: k for k in (KF, EKF, CMKF, SEQUENTIAL_EKF, POLAR_KF, UKF, ALPHA_BETA,
-                                                    ALPHA_BETA_GAMMA, STF, IMM, DEKF, ERROR_SPACE)}
+                                                    ALPHA_BETA_GAMMA, STF, IMM, DEKF, ERROR_SPACE, NN, PDAF,
+                                                    IPDA)}
 
 
 def declarations(name) -> list[Param]:

@@ -18,6 +18,8 @@ plain keys; another window's carry its name: ``pred_err_max[60-90 s]``.
 
 from __future__ import annotations
 
+from statistics import NormalDist
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -320,6 +322,57 @@ def with_intervals(result, filters, level=LEVEL, baseline=None):
     return filters
 
 
+def wilson_series(k, n, level=LEVEL):
+    """Per-step Wilson intervals (lo, hi) of the fractions k/n."""
+    lo_hi = np.array([wilson(a, n, level) for a in np.asarray(k, float)]).reshape(-1, 2)
+    return lo_hi[:, 0], lo_hi[:, 1]
+
+
+def track_loss_statistics(sums, runs, dt, loss_steps, window, level=LEVEL):
+    """A filter's tracking in clutter from its sums: (per-step series, summary, intervals).
+
+    Per step: the fraction of runs whose track is lost by then (``p_lost``) with its Wilson
+    interval, and the mean number of returns validated per scan (over the runs on track).
+    Summary: the runs lost by the end (``lost``) and their fraction with its Wilson interval,
+    the mean time to loss (the first of the test's consecutive steps beyond its distance, over
+    the lost runs; missing when none is), the runs on track, and the validated returns per scan
+    over the report window (missing for a filter that sees no scans)."""
+    lost = np.asarray(sums["lost"], float)
+    series = {"p_lost": lost / runs if runs else np.full(len(lost), np.nan)}
+    series["p_lost_lo"], series["p_lost_hi"] = wilson_series(lost, runs, level)
+    series["validated"] = _div(sums["sum_validated"], sums["count_scans"])
+    k_lost = float(lost[-1]) if len(lost) else 0.0
+    new = np.diff(np.concatenate([[0.0], lost]))  # runs declared lost at each step
+    onset = dt * (np.arange(1, len(lost) + 1) - (loss_steps - 1))
+    a, b = window
+    w = slice(a - 1, b)
+    scans = float(np.sum(sums["count_scans"][w]))
+    summary = {
+        "lost": int(round(k_lost)),
+        "p_lost": k_lost / runs if runs else float("nan"),
+        "time_to_loss": float(np.sum(new * onset) / k_lost) if k_lost > 0 else float("nan"),
+        "on_track": int(runs - round(k_lost)),
+        "validated_per_scan": float(np.sum(sums["sum_validated"][w]) / scans) if scans > 0 else float("nan"),
+    }
+    return series, summary, {"p_lost": list(wilson(k_lost, runs, level))}
+
+
+def paired_loss(pairs, labels, base, runs, level=LEVEL):
+    """Each filter's difference in the fraction of lost tracks to the ``base`` filter's on the same
+    runs, with its half-width (paired proportions: n₁₀ runs lost by it only, n₀₁ by the base only,
+    Var = (n₁₀ + n₀₁ − (n₁₀ − n₀₁)²/n)/n²)."""
+    z = NormalDist().inv_cdf(1.0 - (1.0 - level) / 2.0)
+    b = labels.index(base)
+    out = {}
+    for i, label in enumerate(labels):
+        n10, n01 = float(pairs[i, b]), float(pairs[b, i])
+        diff = (n10 - n01) / runs if runs else float("nan")
+        var = max(n10 + n01 - (n10 - n01) ** 2 / runs, 0.0) / runs**2 if runs else float("nan")
+        h = z * float(np.sqrt(var))
+        out[label] = {"difference": diff, "half_width": h, "significant": bool(i != b and abs(diff) > h)}
+    return out
+
+
 def statistics(result, window, pred_windows=None, level=LEVEL, baseline=None):
     """All statistics of a MonteCarloResult: {'bounds': {...}, 'filters': {label: {...}}, 'level': …}.
 
@@ -346,6 +399,19 @@ def statistics(result, window, pred_windows=None, level=LEVEL, baseline=None):
             runmax=runmax,
         )
         filters[label] = {"kind": result.kinds[label], "summary": summary, "series": series}
+        if result.loss is not None:
+            more, loss_summary, loss_intervals = track_loss_statistics(sums, result.runs, result.dt, result.loss.steps,
+                                                                       window, level)
+            series.update(more)
+            summary.update(loss_summary)
+            filters[label]["loss_intervals"] = loss_intervals
     if result.samples is not None and tuple(result.report_window or ()) == tuple(window):
         with_intervals(result, filters, level, baseline)
+    if result.loss is not None:
+        labels = list(result.labels)
+        paired = paired_loss(result.lost_pairs, labels, baseline if baseline in labels else labels[0], result.runs,
+                             level)
+        for label, f in filters.items():
+            f.setdefault("intervals", {}).update(f.pop("loss_intervals"))
+            f.setdefault("paired", {"baseline": baseline if baseline in labels else labels[0]})["p_lost"] = paired[label]
     return {"bounds": bounds, "filters": filters, "level": level}

@@ -8,6 +8,8 @@
 * ``error_cdf.png``: the distribution of the runs' RMS position errors (P(error ≤ x)).
 * ``run0.png``, ``run0_error.png``: run 0's estimates and errors, with each filter's ±3σ.
 * ``track.png``: the path seen from above, coloured by each filter's per-step RMSE.
+* ``track_loss.png`` (an experiment with a track-loss test): the probability that the track
+  is lost by each time with its Wilson band, and the returns validated per scan.
 
 The closed-loop worlds have their own (``plot_airborne``, ``plot_servo``).
 
@@ -184,6 +186,8 @@ def plot_figures(doc, folder: Path):
     _consistency(ctx, "nees", f"average NEES (dof {2 * dim})", 2.0 * dim)
     _consistency(ctx, "nis", "average NIS", None)
     _error_cdf(ctx)
+    if doc.get("track_loss"):
+        _track_loss(ctx)
     example = doc.get("example_run") or {}
     if example:
         plot_example(doc, example, t, dim, folder, st)
@@ -280,6 +284,41 @@ def _mean_error(ctx):
         axs[-1, c].set_xlabel("time (s)")
     legend(fig, axs, f"bands: {percent(doc.get('level', 0.95))} confidence of the mean error over the runs")
     fig.savefig(ctx["folder"] / "mean_error.png", dpi=110)
+    ctx["plt"].close(fig)
+
+
+def _track_loss(ctx):
+    """P(track lost by t) per filter with its Wilson band; the validated returns per scan."""
+    doc, t, filters, st = ctx["doc"], ctx["t"], ctx["filters"], ctx["st"]
+    loss = doc["track_loss"]
+    scans = {l: f for l, f in filters.items() if np.isfinite(arr(f["series"].get("validated", [np.nan]))).any()}
+    fig, axs = panel_grid(ctx["plt"], 2 if scans else 1, 1)
+    ax = axs[0, 0]
+    for l, f in filters.items():
+        s = f["series"]
+        p = arr(s["p_lost"])
+        ax.plot(t, 100 * p, label=f"{l}\n  {percent(f['summary'].get('p_lost'), sign=False)} lost by the end", **st[l])
+        ax.fill_between(t, 100 * arr(s["p_lost_lo"]), 100 * arr(s["p_lost_hi"]), color=st[l]["color"], alpha=0.18, lw=0)
+    ax.set_ylabel("tracks lost by t (%)")
+    ax.set_ylim(bottom=0)
+    ax.grid(True, alpha=0.3)
+    ax.set_title(f"{ctx['title']}: lost after {loss['steps']} steps beyond {loss['distance']:g} {ctx['pu']}", fontsize=9)
+    if scans:
+        ax = axs[1, 0]
+        for l, f in scans.items():
+            ax.plot(t, arr(f["series"]["validated"]), label="_nolegend_", **st[l])
+        clutter = doc.get("clutter")
+        if clutter:
+            ax.axhline(clutter["false_alarms_per_scan"], color="0.4", lw=0.8, ls=":")
+            ax.text(t[0], clutter["false_alarms_per_scan"], " false alarms per scan in the clutter region",
+                    va="bottom", fontsize=7, color="0.3")
+        ax.set_ylabel("returns validated per scan")
+        ax.set_ylim(bottom=0)
+        ax.grid(True, alpha=0.3)
+    axs[-1, 0].set_xlabel("time (s)")
+    legend(fig, axs, f"bands: {percent(doc.get('level', 0.95))} Wilson intervals of the fraction lost; validated "
+                     "returns over the runs on track")
+    fig.savefig(ctx["folder"] / "track_loss.png", dpi=110)
     ctx["plt"].close(fig)
 
 

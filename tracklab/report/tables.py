@@ -14,6 +14,9 @@ from tracklab.montecarlo.statistics import AXES
 
 # (summary key, title, format); {p}/{v} are the position/velocity units, {a} an axis name
 COLUMNS = [
+    ("lost", "lost tracks", "{:d}"),
+    ("time_to_loss", "time to loss (s)", "{:.1f}"),
+    ("validated_per_scan", "validated/scan", "{:.2f}"),
     ("rmse_pos", "RMSE pos ({p})", "{:.{d}f}"),
     ("rmse_vel", "RMSE vel ({v})", "{:.{d}f}"),
     ("rmse_pos_over_pcrlb", "RMSE/PCRLB", "{:.3f}"),
@@ -35,6 +38,7 @@ COLUMNS = [
     ("max_track_err_p90", "run max error p90 (′)", "{:.3f}"),
     ("max_track_err_p99", "run max error p99 (′)", "{:.3f}"),
     ("diverged", "diverged", "{:d}"),
+    ("on_track", "runs on track", "{:d}"),
     ("runs", "runs", "{:d}"),
 ]
 
@@ -49,11 +53,11 @@ WINDOW_COLUMNS = [  # per named prediction-error window
 def fmt(v, spec):
     return format_value(v, spec)
 
-def diverged_cell(f, key="diverged") -> str:
+def diverged_cell(f, key="diverged", fraction="diverged_fraction") -> str:
     """``k (lo–hi %)``: the diverged runs (summary ``key``) and the Wilson interval of their fraction
-    (``8 (68–100 %)``, ``0 (0–0.12 %)``)."""
+    (``8 (68–100 %)``, ``0 (0–0.12 %)``); the lost tracks with ``fraction = "p_lost"``."""
     k = f["summary"].get(key)
-    lo_hi = f.get("intervals", {}).get("diverged_fraction")
+    lo_hi = f.get("intervals", {}).get(fraction)
     if k is None or not lo_hi or missing(lo_hi[0]) or missing(lo_hi[1]):
         return fmt(k, "{:d}")
     return f"{k} ({percent(lo_hi[0], sign=False)}–{percent(lo_hi[1])})"
@@ -69,6 +73,18 @@ def paired_cell(f, key) -> str:
         return "0 (identical)"
     cell = with_half_width(c["difference"], c["half_width"], sign=True)
     return cell if c["significant"] or cell == "—" else cell + " (n.s.)"
+
+def lost_paired_cell(f) -> str:
+    """The difference in the fraction of lost tracks to the baseline, in percentage points."""
+    c = f.get("paired", {}).get("p_lost")
+    if c is None:
+        return "—"
+    if f.get("paired", {}).get("baseline") == f.get("label"):
+        return "baseline"
+    if missing(c["difference"]):
+        return "—"
+    cell = f"{100 * c['difference']:+.1f} ± {100 * c['half_width']:.1f} pp"
+    return cell if c["significant"] else cell + " (n.s.)"
 
 def _columns(stats):
     p, v = stats.get("units", ("m", "m/s"))
@@ -107,6 +123,9 @@ def table_rows(stats):
     header = ["filter", "kind"] + [t for _, t, _ in cols]
     if base is not None and paired_key is not None:
         header.insert(2 + next(i + 1 for i, c in enumerate(cols) if c[0] == paired_key), f"Δ {paired_title} vs {base}")
+    lost_paired = base is not None and any("p_lost" in f.get("paired", {}) for f in stats["filters"].values())
+    if lost_paired:  # the difference in the fraction of lost tracks, after their column
+        header.insert(3 + next(i for i, c in enumerate(cols) if c[0] == "lost"), f"Δ lost vs {base}")
     rows = []
     for label, f in stats["filters"].items():
         f = dict(f, label=label)
@@ -115,6 +134,10 @@ def table_rows(stats):
         for k, _, spec in cols:
             if k == "diverged":
                 cells.append(diverged_cell(f))
+            elif k == "lost":
+                cells.append(diverged_cell(f, "lost", "p_lost"))
+                if lost_paired:
+                    cells.append(lost_paired_cell(f))
             elif k in hw:
                 cells.append(with_half_width(f["summary"].get(k), hw[k], spec))
             else:
@@ -136,6 +159,14 @@ def table_caption(stats) -> str:
     text = (f"± : half-width of the {percent(level)} confidence interval over the {runs} runs (Student t over the runs' "
             + ("values)." if servo else f"time-averaged values; delta method for an RMSE{' and the NIS' if nis else ''}).")
             + " diverged: runs, with the Wilson interval of their fraction.")
+    loss = stats.get("track_loss")
+    if loss:
+        text += (f" lost tracks: runs whose position error stayed beyond {loss['distance']:g} {stats.get('units', ['m'])[0]} "
+                 f"for {loss['steps']} consecutive steps (lost for good), with the Wilson interval of their fraction; "
+                 "time to loss: the mean time of the first of those steps, over the lost runs; validated/scan: returns "
+                 "inside the gate per scan. Every other statistic is over the runs on track.")
+        if _baseline(stats) is not None:
+            text += f" Δ lost: difference in the fraction of lost tracks to {_baseline(stats)} on the same runs (pp: percentage points)."
     if any("max_track_err_p50" in s for s in summaries):
         text += " run max error pNN: percentiles of the runs' maximum tracking errors."
     elif any("err_pos_p50" in s for s in summaries):

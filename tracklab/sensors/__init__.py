@@ -1,5 +1,6 @@
 """Sensors: measurement geometry, noise, timing, detection, converted measurements."""
 
+from tracklab.sensors.clutter import Cluttered
 from tracklab.sensors.conversion import CONVERSIONS
 from tracklab.sensors.custom import CustomSensor
 from tracklab.sensors.geometry import (
@@ -16,6 +17,6 @@ from tracklab.sensors.geometry import (
 )
 
 __all__ = [
-    "CONVERSIONS", "CustomSensor", "SENSORS", "SENSOR_SIGMAS", "Sensor", "SensorKind", "SensorSuite", "angles_h", "cartesian_h", "epochs", "polar_h",
+    "CONVERSIONS", "Cluttered", "CustomSensor", "SENSORS", "SENSOR_SIGMAS", "Sensor", "SensorKind", "SensorSuite", "angles_h", "cartesian_h", "epochs", "polar_h",
     "spherical_h",
 ]

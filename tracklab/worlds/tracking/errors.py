@@ -35,13 +35,14 @@ class RunErrors(NamedTuple):
     logdet_s: Any  # log det S, 0 where no update
     e_pred: Any  # (d,) one-step position prediction error
     var: Any  # (2d,) the filter's own variances of e (the diagonal of its covariance), CV layout
+    validated: Any  # returns it validated in a scan (a filter of scans); NaN: no scan, or not such a filter
 
     @classmethod
     def zeros(cls, d, B, dtype):
         """In the place of the errors before the first step (the scan's first carry)."""
         z = lambda *shape: jnp.zeros(shape + (B,), dtype)
         no = jnp.zeros((B,), bool)
-        return cls(z(2 * d), z(), z(), no, z(), no, z(), z(d), z(2 * d))
+        return cls(z(2 * d), z(), z(), no, z(), no, z(), z(d), z(2 * d), jnp.full((B,), jnp.nan, dtype))
 
 def pick(a, idx, axis=0):
     """``a``'s entries ``idx`` (known at trace time) along ``axis`` by static slices, which fuse
@@ -63,6 +64,7 @@ class ErrorInputs(NamedTuple):
     valid: Any  # bool: an update happened
     dof: Any  # innovation components used
     e_pred: Any  # (d,) one-step position prediction error (NaN when the filter reports none)
+    validated: Any  # returns validated in a scan (NaN: none made, or not a filter of scans)
 
 def error_inputs(out, truth_k, pv, dtype) -> ErrorInputs:
     """One run's ``ErrorInputs`` at one step from a filter's output ``out`` (an ``Out``), the
@@ -79,7 +81,8 @@ def error_inputs(out, truth_k, pv, dtype) -> ErrorInputs:
         e_pred = pick(out.x_pred, pv[0::2]) - truth_k[0::2]
     else:  # no prediction reported: its statistics are NaN, shown as missing
         e_pred = jnp.full((len(pv) // 2,), jnp.nan, dtype)
-    return ErrorInputs(e, Pe, sum_elements(out.x), nu, S, valid, dof, e_pred)
+    validated = jnp.asarray(jnp.nan if out.validated is None else out.validated, dtype)
+    return ErrorInputs(e, Pe, sum_elements(out.x), nu, S, valid, dof, e_pred, validated)
 
 def errors_of(a: ErrorInputs, dtype) -> RunErrors:
     """One run's errors from its ``ErrorInputs``."""
@@ -95,7 +98,7 @@ def errors_of(a: ErrorInputs, dtype) -> RunErrors:
     # fixed dtypes, so that the scan's carry is known without tracing the step (RunErrors.zeros)
     f = lambda v: jnp.asarray(v, dtype)
     return RunErrors(f(a.e), f(nees), f(nis), jnp.asarray(a.valid, bool), f(a.dof), bad, f(logdet_s), f(a.e_pred),
-                      f(jnp.diagonal(a.Pe)))
+                      f(jnp.diagonal(a.Pe)), f(a.validated))
 
 def run_errors(out, truth_k, pv, dtype) -> RunErrors:
     """One run's errors at one step from a filter's output ``out`` (see ``error_inputs``)."""
@@ -113,12 +116,13 @@ def with_errors(body, dtype):
 # a step's sums over the runs and maxima over the runs, each one vector per filter inside the
 # scan (one reduction each, one output each), cut into the named quantities after it
 SUMS = ("count", "sum_pos", "sum_vel", "sumsq_pos", "sumsq_vel", "sum_nees", "sum_nis", "count_nis", "dof_nis",
-         "sum_logdet_s", "sum_pred", "sumsq_pred", "sum4_pos", "sum4_vel", "sumsq2_pos", "sumsq2_vel")
+         "sum_logdet_s", "sum_pred", "sumsq_pred", "sum4_pos", "sum4_vel", "sumsq2_pos", "sumsq2_vel",
+         "sum_validated", "count_scans", "lost")
 
 MAXIMA = ("max_abs_pos", "max_abs_vel", "max_err_pos", "max_err_vel")
 
 PER_RUN_SCALARS = {"count", "sum_nees", "sum_nis", "count_nis", "dof_nis", "sum_logdet_s", "max_err_pos", "max_err_vel",
-                    "sumsq2_pos", "sumsq2_vel"}
+                    "sumsq2_pos", "sumsq2_vel", "sum_validated", "count_scans", "lost"}
 
 def sample_names(d: int, windows) -> list[tuple[str, int]]:
     """The per-run samples of a filter (name, width), in order: over the report window its
@@ -153,9 +157,11 @@ def run_samples(r: RunErrors, w_k):
         rows.append(w_k[j] * jnp.concatenate([jnp.sum(sq_pred, 0)[None], sq_pred]))
     return jnp.concatenate(rows)
 
-def lane_sums(r: RunErrors, ok, runmax, w_k, dtype):
+def lane_sums(r: RunErrors, ok, runmax, w_k, dtype, lost=None):
     """One step's sums over the runs ``ok`` (B,) of one filter's per-run errors (runs last): the
-    vectors of ``SUMS`` and of ``MAXIMA`` (see ``named``), and the updated per-run maxima."""
+    vectors of ``SUMS`` and of ``MAXIMA`` (see ``named``), and the updated per-run maxima.
+    ``lost`` (B,): the live runs whose track is lost by this step (``track_loss``), counted
+    whether or not they are among ``ok`` (None: none)."""
     okf = ok.astype(dtype)
     e = jnp.where(ok, r.e, 0.0)  # (2d, B)
     ep, ev = e[0::2], e[1::2]
@@ -180,6 +186,9 @@ def lane_sums(r: RunErrors, ok, runmax, w_k, dtype):
         "sum4_vel": ev**4,
         "sumsq2_pos": jnp.sum(ep**2, 0)[None] ** 2,
         "sumsq2_vel": jnp.sum(ev**2, 0)[None] ** 2,
+        "sum_validated": jnp.where(ok & jnp.isfinite(r.validated), r.validated, 0.0)[None],
+        "count_scans": (ok & jnp.isfinite(r.validated)).astype(dtype)[None],
+        "lost": (jnp.zeros_like(ok) if lost is None else lost).astype(dtype)[None],
     }
     top = {
         "max_abs_pos": jnp.abs(ep),
@@ -190,6 +199,24 @@ def lane_sums(r: RunErrors, ok, runmax, w_k, dtype):
     sums = sum_over_runs([add[n] for n in SUMS])
     maxima = jnp.max(jnp.where(ok, jnp.concatenate([top[n] for n in MAXIMA]), -jnp.inf), axis=-1)
     return sums, maxima, runmax
+
+class TrackLoss(NamedTuple):
+    """The track-loss test: a run's track is lost at the first of ``steps`` consecutive steps whose
+    position error is beyond ``distance`` (or not finite); lost stays lost."""
+
+    distance: float
+    steps: int
+
+
+def track_loss(test: TrackLoss | None, e, beyond_steps, lost):
+    """One step of the test on position errors ``e`` ((2d, B), CV layout): the runs' updated count
+    of consecutive steps beyond the distance and whether each is lost."""
+    if test is None:
+        return beyond_steps, lost
+    beyond = ~(norm(e[0::2]) <= test.distance)  # NaN: beyond
+    beyond_steps = jnp.where(beyond, beyond_steps + 1, 0)
+    return beyond_steps, lost | (beyond_steps >= test.steps)
+
 
 @jax.custom_jvp
 def sum_over_runs(rows):

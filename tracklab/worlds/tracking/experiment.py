@@ -8,7 +8,7 @@ statistics and its results folder.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -43,10 +43,16 @@ class FilterConfig:
 
 def declared_of(fc) -> dict:
     """The numbers a filter declares and has (name -> Param): those of its kind's that its table
-    gives (a built-in kind), or those its factory declares (``tracklab.declare``)."""
-    if isinstance(fc, FilterConfig):
-        return {n: p for n, p in KINDS[fc.kind].params.items() if n in fc.params}
-    return dict(fc.declared)
+    gives (a built-in kind; an association's and its base's), or those its factory declares
+    (``tracklab.declare``). The nearest neighbour's are not tuned: its choice of a return is a
+    hard one, with no gradient (tune its PDAF relaxation, kind = "pdaf" with the same base)."""
+    if not isinstance(fc, FilterConfig):
+        return dict(fc.declared)
+    kinds = [KINDS[fc.kind]] + ([KINDS[fc.options["base"]]] if "base" in fc.options else [])
+    declared = {n: p for k in reversed(kinds) for n, p in k.params.items() if n in fc.params}
+    if fc.kind == "nn":
+        declared = {n: replace(p, tune=False) for n, p in declared.items()}
+    return declared
 
 
 @dataclass
@@ -73,6 +79,7 @@ class Experiment(protocol.Experiment):
     level: float = 0.95  # of the confidence intervals
     baseline: str | None = None  # the filter the paired comparisons are to (None: the first)
     target_precision: float | None = None  # runs = "auto": stop when every position RMSE is this tight (relative)
+    track_loss: Any = None  # [track_loss]: the test a run's track is lost by (errors.TrackLoss), None: none
 
     # what a sweep plots: (summary key, title)
     sweep_metrics = (("rmse_pos", "time-averaged position RMSE ({pos})"), ("nees", "average NEES"),
@@ -114,7 +121,7 @@ class Experiment(protocol.Experiment):
         run count itself, nor any number."""
         lanes = tuple(self.lane(fc) for fc in self.filters)
         chunk = int(chunk or self.chunk or scan.default_chunk(self.scenario, self.sensor, runs=runs))
-        return scan.TrackingStructure(lanes, scan.windows_of(self.pred_windows), chunk)
+        return scan.TrackingStructure(lanes, scan.windows_of(self.pred_windows), chunk, self.track_loss)
 
     def params(self):
         """Every number of the experiment, as the compiled program's argument."""
@@ -266,7 +273,25 @@ def stats_document(exp, res):
             | {k: f[k] for k in ("half_width", "intervals", "paired", "cdf") if k in f} | {"series": f["series"]}
             for label, f in st["filters"].items()
         },
-    } | ({"auto": res.auto} if res.auto else {})
+    } | ({"auto": res.auto} if res.auto else {}) | clutter_of(exp, res)
+
+
+def clutter_of(exp, res) -> dict:
+    """What a statistics document says of tracking in clutter: the track-loss test, the clutter
+    (its density, region volume, expected false alarms per scan, capacity) and the scans that
+    passed their capacity (empty when the experiment has none of these)."""
+    doc = {}
+    if res.loss is not None:
+        doc["track_loss"] = {"distance": float(res.loss.distance), "steps": int(res.loss.steps)}
+    cluttered = next((s for s in exp.sensor.sensors if getattr(s, "max_returns", None)), None) if exp.sensor else None
+    if cluttered is not None:
+        doc["clutter"] = {"density": float(np.asarray(cluttered.density)), "volume": float(cluttered.volume()),
+                          "false_alarms_per_scan": float(cluttered.mean_false_alarms()),
+                          "max_returns": cluttered.max_returns, "p_detect": float(np.asarray(cluttered.p_detect)),
+                          "region": "about the target" if cluttered.about_target else "fixed coverage"}
+    if res.overflow is not None:
+        doc["overflow"] = res.overflow
+    return doc
 
 def example_of(exp, res):
     """Run 0 in CV layout: truth, each filter's estimates and (Cartesian sensors) the measurements."""

@@ -28,6 +28,7 @@ from tracklab.montecarlo.pcrlb import pcrlb64
 from tracklab.montecarlo.statistics import REPORT_WINDOW
 from tracklab.scenarios import Scenario
 from tracklab.sensors import SensorSuite
+from tracklab.sensors.clutter import scan_information_scale
 from tracklab.worlds.tracking.errors import sample_names, unpack
 from tracklab.worlds.tracking.lanes import FilterSpec
 from tracklab.worlds.tracking.scan import (
@@ -60,6 +61,9 @@ class MonteCarloResult:
     sample_names: list = field(default_factory=list)  # (name, width) of each lane's samples (``sample_names``)
     report_window: tuple[int, int] | None = None  # 1-based steps the samples average over
     auto: dict | None = None  # runs chosen by a target precision: {target, max_runs, reached}
+    loss: Any = None  # the track-loss test (errors.TrackLoss) or None
+    lost_pairs: Any = None  # (filters, filters): runs lost by one filter and not by the other
+    overflow: dict | None = None  # a cluttered sensor's scans over their capacity: {scans, runs, capacity}
 
 def run(structure: TrackingStructure, params: TrackingParams, runs: int, key, *, progress=None,
         precision: str = "float64", points: int | None = None, target: float | None = None, level: float = LEVEL):
@@ -85,6 +89,12 @@ def result(structure, params, sums, out: runner.Outcome, point: int | None = Non
     scenario = params.scenario
     sums = unpack(runner.labelled(sums, structure.labels), scenario.dim)
     info = sums.pop("_info")
+    overflow, lost_pairs = sums.pop("_overflow", None), sums.pop("_lost_pairs", None)
+    cluttered = next((s for s in params.sensor.sensors if getattr(s, "max_returns", None)), None)
+    if cluttered is not None:  # a scan's information, reduced by clutter and missed detections
+        info = info * scan_information_scale(cluttered)
+        overflow = {"scans": int(round(float(np.sum(overflow["scans"])))), "runs": int(round(float(overflow["runs"]))),
+                    "capacity": cluttered.max_returns}
     ex = sums.pop("_example")
     example = {"truth": np.asarray(ex["truth"]), "z": np.asarray(ex["z"])}
     example["x"] = {label: np.asarray(sums[label].pop("example_x")) for label in structure.labels}
@@ -100,7 +110,8 @@ def result(structure, params, sums, out: runner.Outcome, point: int | None = Non
         kinds={f.label: f.kind for f in structure.filters}, example=example,
         axes=tuple(scenario.axes), units=tuple(scenario.units), windows=[n for n, _ in structure.windows],
         samples=samples, sample_names=sample_names(scenario.dim, windows),
-        report_window=(int(report[0]) + 1, int(report[-1]) + 1))
+        report_window=(int(report[0]) + 1, int(report[-1]) + 1), loss=structure.loss,
+        lost_pairs=None if lost_pairs is None else np.asarray(lost_pairs, float), overflow=overflow)
 
 def monte_carlo(
     scenario,

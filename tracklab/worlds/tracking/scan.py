@@ -43,6 +43,7 @@ from tracklab.worlds.tracking.errors import (
     lane_sums,
     pick,
     run_samples,
+    track_loss,
     with_errors,
 )
 from tracklab.worlds.tracking.lanes import lane, run_dependence, view_pattern
@@ -55,6 +56,7 @@ class TrackingStructure:
     filters: tuple  # DeclaredFilter or FilterSpec, one per compared filter
     windows: tuple = ()  # (name, (steps,) bools): where each run's largest prediction error is taken
     chunk: int = 1000  # runs per chunk
+    loss: Any = None  # the track-loss test (errors.TrackLoss), None: none
 
     @property
     def labels(self) -> list[str]:
@@ -135,6 +137,7 @@ def _chunk(structure: TrackingStructure):
                                  axis=1)  # (steps, M): which components each sensor reports at each step
         report_masks = np.stack([s.report_mask(T) for s in sensor.sensors], axis=1)  # (steps, sensors)
         detect_all = not sensor.misses
+        cluttered = next((s for s in sensor.sensors if getattr(s, "max_returns", None)), None)
         with_bound = scenario.gaussian  # no PCRLB, no information to gather
         stand_in = _stand_in(sensor)
         views = [f.view_for(stand_in) for f in structure.filters]
@@ -172,7 +175,8 @@ def _chunk(structure: TrackingStructure):
         for ln in lanes:
             fixed = (t, ln.present, jnp.asarray(ln.reports))
             m_f = ln.pattern.shape[1]
-            z_ex, truth_ex = jnp.zeros((m_f,), dtype), jnp.zeros((2 * d,), dtype)
+            scan_shape = (cluttered.max_returns,) if cluttered is not None else ()  # a scan's returns
+            z_ex, truth_ex = jnp.zeros(scan_shape + (m_f,), dtype), jnp.zeros((2 * d,), dtype)
             shared, varies, inputs, body = run_dependence(ln.init, ln.body, prior[0], z_ex, truth_ex, fixed,
                                                            may_share=ln.present is not None)
             bodies.append(body)
@@ -204,7 +208,8 @@ def _chunk(structure: TrackingStructure):
             no_errors = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (L,) + a.shape), RunErrors.zeros(d, B, dtype))
             nothing = (no_errors, jnp.zeros((L, 4 * d), dtype))
             carries.append((tuple(states0[i] for i in g), nothing, jnp.zeros((L, B), bool),
-                            (jnp.zeros((L, len(names), d + 1, B), dtype), jnp.zeros((L, n_acc, B), dtype))))
+                            (jnp.zeros((L, len(names), d + 1, B), dtype), jnp.zeros((L, n_acc, B), dtype)),
+                            (jnp.zeros((L, B), jnp.int32), jnp.zeros((L, B), bool))))
 
         def group_errors(g, outs):
             """The errors (lanes, …, runs) of a group's filters from their steps' outputs: their
@@ -215,18 +220,22 @@ def _chunk(structure: TrackingStructure):
             per_run = jax.vmap(lambda a: errors_of(a, dtype), in_axes=(err_axes[g[0]],), out_axes=-1)
             return jax.vmap(per_run)(stacked)
 
-        def group_stats(g, pending, w_k, bad_any, per_run_acc):  # w_k: the step before's windows
+        def group_stats(g, pending, w_k, bad_any, per_run_acc, loss, started):  # w_k: the step before's windows
             r, first = pending
             runmax, acc = per_run_acc
             bad_any = bad_any | r.bad
             ok = live & ~pick(exclude, g) & ~bad_any
-            sums, maxima, runmax = jax.vmap(lambda r, ok, m: lane_sums(r, ok, m, w_k, dtype))(r, ok, runmax)
+            # the track-loss test on the step before's errors (none before the first step)
+            beyond, lost = jax.vmap(lambda e, b, l: track_loss(structure.loss, e, b, l))(r.e, *loss)
+            loss = jax.tree_util.tree_map(lambda new, old: jnp.where(started, new, old), (beyond, lost), loss)
+            sums, maxima, runmax = jax.vmap(lambda r, ok, m, l: lane_sums(r, ok, m, w_k, dtype, live & l))(
+                r, ok, runmax, loss[1])
             acc = acc + jax.vmap(lambda r: run_samples(r, w_k.astype(dtype)))(r)
-            return (sums, maxima, first), bad_any, (runmax, acc)
+            return (sums, maxima, first), bad_any, (runmax, acc), loss
 
         def scan_step(carry, inp):
-            truth_prev, w_prev, group_carries = carry
-            k, t_k, src_k, zv_k, lane_in, w_k = inp
+            truth_prev, w_prev, group_carries, overflowed = carry
+            k, t_k, src_k, zv_k, lane_in, w_k, over_k = inp
             if not stream:
                 truth_k, z_k = src_k
             else:
@@ -235,6 +244,10 @@ def _chunk(structure: TrackingStructure):
                 z_k = jax.vmap(sensor.measure_step, in_axes=(0, None, None, 0 if truth_batched else None))(
                     meas_k, k, T, truth_k[..., 0::2])
             out = {"_example": {"truth": truth_k[0] if truth_batched else truth_k, "z": z_k[0]}}
+            if cluttered is not None:  # the scans that passed their capacity
+                over_k = jax.vmap(lambda d, c: cluttered.overflowed(((None, d), c, None, None), k, T, dtype))(*over_k)
+                out["_overflowed_scans"] = jnp.sum((live & over_k).astype(dtype))
+                overflowed = overflowed | over_k
             if with_bound:  # expected measurement information at the true positions, for the PCRLB
                 pos_k = truth_k[..., 0::2]
                 info = 0.0
@@ -246,11 +259,12 @@ def _chunk(structure: TrackingStructure):
                     info = info + reports_by_sensor[k, j] * I
                 out["_info"] = info
             new_carries = []
-            for g, (states, pending, bad_any, per_run_acc) in zip(groups, group_carries):
+            for g, (states, pending, bad_any, per_run_acc, loss) in zip(groups, group_carries):
                 # the sums of the step before, from its per-run errors held in the carry: a loop
                 # variable is computed once, where XLA would otherwise recompute the filter's
                 # arithmetic inside every reduction that reads it
-                (sums, maxima, first), bad_any, per_run_acc = group_stats(g, pending, w_prev, bad_any, per_run_acc)
+                (sums, maxima, first), bad_any, per_run_acc, loss = group_stats(g, pending, w_prev, bad_any,
+                                                                                per_run_acc, loss, k > 0)
                 for j, i in enumerate(g):
                     out[runner.lane_key(i)] = (sums[j], maxima[j], first[j])
                 new_states, outs = [], []
@@ -263,8 +277,8 @@ def _chunk(structure: TrackingStructure):
                 r = group_errors(g, outs)
                 x_first = r.e[:, :, 0] + (truth_k[0] if truth_batched else truth_k)  # run 0's estimate
                 first = jnp.concatenate([x_first, r.var[:, :, 0]], axis=1)  # and its variances
-                new_carries.append((tuple(new_states), (r, first), bad_any, per_run_acc))
-            return (truth_k if (stream and scenario.per_run) else None, w_k, new_carries), out
+                new_carries.append((tuple(new_states), (r, first), bad_any, per_run_acc, loss))
+            return (truth_k if (stream and scenario.per_run) else None, w_k, new_carries, overflowed), out
 
         lanes_in = [(ln.present, jnp.asarray(ln.reports)) for ln in lanes]
         if stream:
@@ -272,18 +286,27 @@ def _chunk(structure: TrackingStructure):
         # T + 1 iterations: iteration k adds up step k - 1's errors (held in the carry), so the
         # statistics are written once, inside the loop. Iteration 0 adds up nothing; iteration T
         # reads step T - 1's inputs again, and its simulation and filter steps are not kept
-        carry0 = (truth0 if (stream and scenario.per_run) else None, jnp.zeros((len(names),), bool), carries)
+        over_in = None
+        if cluttered is not None:  # its detection and false-alarm count draws, time-major
+            mine = meas_draws[0] if stream else jax.vmap(lambda key: sensor.draws(key, T), out_axes=1)(k_meas)[0]
+            over_in = (mine[0][1], mine[1])
+        carry0 = (truth0 if (stream and scenario.per_run) else None, jnp.zeros((len(names),), bool), carries,
+                  jnp.zeros((B,), bool))
         again = lambda a: jnp.concatenate([a, a[-1:]])
         w_masks = jnp.asarray(window_mask(windows))  # (T, windows)
-        xs = jax.tree_util.tree_map(again, (jnp.arange(T), t, src, z_views, lanes_in, w_masks))
-        (_, _, finals), out = jax.lax.scan(scan_step, carry0, xs)
+        xs = jax.tree_util.tree_map(again, (jnp.arange(T), t, src, z_views, lanes_in, w_masks, over_in))
+        (_, _, finals, overflowed), out = jax.lax.scan(scan_step, carry0, xs)
         example = {"truth": jnp.concatenate([(truth0[0] if truth_batched else truth0)[None], out["_example"]["truth"][:T]]),
                    "z": out["_example"]["z"][:T]}
         added = {"_info": out["_info"][:T] if with_bound else jnp.zeros((T, d, d), dtype)}
+        if cluttered is not None:  # scans over their capacity, per step, and the runs with any
+            added["_overflow"] = {"scans": out["_overflowed_scans"][:T],
+                                  "runs": jnp.sum((live & overflowed).astype(dtype))}
         largest, first = {}, {"_example": example}
         n = len(lanes)
         flags, values, oks = [None] * n, [None] * n, [None] * n
-        for g, (_, _, bad_any, (runmax, acc)) in zip(groups, finals):
+        lost_final = [None] * n
+        for g, (_, _, bad_any, (runmax, acc), (_, lost)) in zip(groups, finals):
             for j, i in enumerate(g):
                 ln = lanes[i]
                 key = runner.lane_key(i)
@@ -294,13 +317,19 @@ def _chunk(structure: TrackingStructure):
                     added[key][f"runmax_pred@{name}"] = jnp.sum(jnp.where(ok, runmax[j, w], 0.0), axis=-1)
                 largest[key] = {"maxima": maxima}
                 first[key] = {"example_x": run0[:, :2 * d], "example_var": run0[:, 2 * d:]}
-                flags[i] = live & bad_any[j]
+                # a lost track is left out of the filter's statistics like a diverged run: they are
+                # those of the runs on track
+                flags[i] = live & (bad_any[j] | lost[j])
+                lost_final[i] = live & lost[j]
                 values[i] = jnp.concatenate([acc[j] / jnp.asarray(lengths, dtype)[:, None], runmax[j].reshape(-1, B)])
                 oks[i] = ok
         per_run = None
         if values:  # each run's time-averaged samples, for intervals and paired comparisons
             values = jnp.stack(values)
             per_run = {"values": values, "ok": jnp.stack(oks), "kept": jnp.sqrt(values[:, :1])}
+        if structure.loss is not None and n:  # runs lost by one filter and not by another, for paired differences
+            lf = jnp.stack(lost_final)
+            added["_lost_pairs"] = jnp.sum((lf[:, None, :] & ~lf[None, :, :]).astype(dtype), axis=-1)
         # diverged (filters, B): the runner runs the chunk again without them
         return runner.Sums(added, largest, first, per_run, jnp.stack(flags) if flags else jnp.zeros((0, B), bool))
 

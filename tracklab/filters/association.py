@@ -1,0 +1,317 @@
+"""Data association: a Gaussian filter made to track in clutter, as a combinator.
+
+A cluttered sensor (``tracklab.sensors.Cluttered``) gives a *scan* per step: z of shape
+(capacity, m), one row per return, NaN rows unused. ``nearest_neighbour(base, …)``,
+``pdaf(base, …)`` and ``ipda(base, …)`` take any filter ``base`` whose state is a Gaussian
+(``blocks.Gaussian``, or any NamedTuple with x (n,) and P (n, n): every filter written with
+``blocks.kalman_filter``, the built-in KF, EKF, CMKF, UKF, sequential EKF and polar KF) and
+return a filter of scans, in the spirit of optax's ``chain``:
+
+1. one hypothesis per return: the base's step on that return alone (``vmap`` over the rows;
+   what does not depend on the measurement — the prediction, H, S, the gain — is computed
+   once), and the base's prediction (no return);
+2. the gate: return i is validated when its innovation's d²ᵢ = νᵢᵀ Sᵢ⁻¹ νᵢ ≤ γ (``gate``);
+3. the rule:
+
+   * **nearest neighbour**: the validated hypothesis of least d² (none: the prediction);
+   * **PDAF** (Bar-Shalom & Tse, Automatica 1975; the parametric form of Bar-Shalom, Daum &
+     Huang, "The probabilistic data association filter", IEEE Control Systems Magazine 29(6),
+     2009): weights β₀ ∝ λ(1 − P_D P_G), βᵢ ∝ P_D N(νᵢ; 0, Sᵢ) over the validated returns,
+     λ the clutter density, P_G = P(χ²ₘ ≤ γ); the posterior is the weighted mixture of the
+     prediction and the hypotheses reduced to its mean and covariance, which for a filter
+     whose update is affine in z (KF, EKF) is the PDAF's x = x⁻ + K Σβᵢνᵢ,
+     P = β₀P⁻ + (1 − β₀)P_c + K(Σβᵢνᵢνᵢᵀ − ννᵀ)Kᵀ;
+   * **IPDA** (Mušicki, Evans & Stanković, "Integrated probabilistic data association",
+     IEEE Trans. Automatic Control 39(6), 1994): the PDAF's update and the probability ψ that
+     the target exists, predicted ψ⁻ = p_S ψ (Markov chain, no birth) and updated
+     ψ = (1 − δ)ψ⁻ / (1 − δψ⁻), δ = P_D P_G − Σᵢ P_D N(νᵢ; 0, Sᵢ)/λ (in ``Out.aux["existence"]``).
+
+PDAF and IPDA are smooth in every number (gate, P_D, λ, the base's q and r), so ``tracklab
+tune`` tunes them through the simulation. The nearest neighbour's choice is a hard one: its
+numbers are not tuned (tune its PDAF relaxation).
+
+A scan filter's ``Out.validated`` is the number of validated returns (NaN at a step with no
+scan); its ν and S are the combined innovation (the chosen one for the nearest neighbour) and
+the base's innovation covariance. A z of one measurement (m,) is a scan of one return.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from tracklab.filters.core import Filter, Meas, Out, select
+from tracklab.filters.kind import ANY_SENSOR, MEASUREMENT_NOISE, PROCESS_NOISE, FilterKind
+from tracklab.linalg import mahalanobis2_logdet
+from tracklab.parameters import Param, bounded, positive, unit_interval
+
+
+def gate_probability(gate, m: int):
+    """P_G = P(χ²ₘ ≤ γ): the probability that the target's return passes a gate γ."""
+    return jax.scipy.special.gammainc(m / 2.0, jnp.asarray(gate) / 2.0)
+
+
+def chi2_gate(probability: float, m: int) -> float:
+    """The gate γ with P(χ²ₘ ≤ γ) = ``probability`` (bisection on ``gate_probability``)."""
+    lo, hi = 0.0, 1000.0
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if float(gate_probability(mid, m)) < probability else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def _gaussian(state, where: str):
+    """``state`` if it is a Gaussian (a NamedTuple with x and P), else TypeError in one line."""
+    if not (isinstance(state, tuple) and hasattr(state, "_replace") and hasattr(state, "x") and hasattr(state, "P")):
+        raise TypeError(f"{where}: the base filter's state is {type(state).__name__}: association needs a Gaussian "
+                        "state (x, P), as every filter written with tracklab.filters.kalman_filter has")
+    return state
+
+
+def _scan(meas: Meas, m: int):
+    """(returns (K, m) with unused rows 0, which rows are returns (K,), whether the sensor scanned)."""
+    Z = jnp.asarray(meas.z)
+    if Z.ndim == 1:
+        Z = Z[None]
+    if Z.ndim != 2 or Z.shape[1] != m:
+        raise ValueError(f"the filter associates scans of returns of {m} components: z has shape {jnp.shape(meas.z)}")
+    finite = jnp.all(jnp.isfinite(Z), axis=1)
+    scanned = jnp.asarray(meas.valid, bool) & (jnp.all(meas.present) if meas.present is not None else jnp.any(finite))
+    returns = finite & scanned
+    return jnp.where(returns[:, None], Z, 0.0), returns, scanned
+
+
+def _mixture(weights, g0, gs):
+    """The mean and covariance of the mixture of ``g0`` (weight ``weights[0]``) and the hypotheses
+    ``gs`` (x (K, n), P (K, n, n); weights ``weights[1:]``): (x, P)."""
+    w0, w = weights[0], weights[1:]
+    x = w0 * g0.x + jnp.einsum("k,kn->n", w, gs.x)
+    d0, d = g0.x - x, gs.x - x
+    P = w0 * (g0.P + jnp.outer(d0, d0)) + jnp.einsum("k,kij->ij", w, gs.P + d[:, :, None] * d[:, None, :])
+    return x, 0.5 * (P + P.T)
+
+
+def _out(out0: Out, x, P, nu, S, valid, dof, validated, aux=None) -> Out:
+    return Out(x=x, P=P, x_pred=out0.x_pred, nu=nu, S=S, valid=valid, dof=dof, validated=validated, aux=aux)
+
+
+def associate(base: Filter, rule: str, split, m: int, *, wrap_state=False) -> Filter:
+    """A filter of scans from ``base`` by ``rule`` ("nn", "pdaf", "ipda"); ``split(params) ->
+    (base params, association params {gate, p_detect, clutter_density[, p_survive, existence0]})``."""
+
+    def hypotheses(params, state, meas):
+        bp, ap = split(params)
+        Z, returns, scanned = _scan(meas, m)
+        step0 = base.coast or base.step
+        absent = Meas(jnp.zeros((m,), Z.dtype), meas.t, jnp.asarray(True), jnp.zeros((m,), bool))
+        pred, out0 = step0(bp, state, absent)
+        every = jnp.ones((m,), bool)
+        states, outs = jax.vmap(lambda z: base.step(bp, state, Meas(z, meas.t, jnp.asarray(True), every)))(Z)
+        d2, logdet = jax.vmap(mahalanobis2_logdet)(outs.S, outs.nu)
+        gated = returns & (d2 <= ap["gate"])
+        return ap, pred, out0, states, outs, d2, logdet, gated, scanned
+
+    def weights(ap, d2, logdet, gated):
+        """Log-weights (K + 1,): the prediction's, then each hypothesis' (−inf where not validated)."""
+        pd, lam = ap["p_detect"], ap["clutter_density"]
+        log_w0 = jnp.log(lam) + jnp.log1p(-pd * gate_probability(ap["gate"], m))
+        log_w = jnp.where(gated, jnp.log(pd) - 0.5 * (d2 + logdet + m * math.log(2.0 * math.pi)), -jnp.inf)
+        return jnp.concatenate([log_w0[None], log_w])
+
+    def step(params, state, meas):
+        inner = state[0] if wrap_state else state
+        ap, pred, out0, states, outs, d2, logdet, gated, scanned = hypotheses(params, inner, meas)
+        _gaussian(pred, "association")
+        n_valid = jnp.sum(gated)
+        any_valid = n_valid > 0
+        validated = jnp.where(scanned, n_valid.astype(out0.x.dtype), jnp.nan)
+        eye = jnp.eye(m, dtype=out0.x.dtype)
+        if rule == "nn":
+            i = jnp.argmin(jnp.where(gated, d2, jnp.inf))
+            chosen = jax.tree_util.tree_map(lambda a: a[i], states)
+            oc = jax.tree_util.tree_map(lambda a: a[i], outs)
+            new = select(any_valid, chosen, pred)
+            out = _out(out0, jnp.where(any_valid, oc.x, out0.x), jnp.where(any_valid, oc.P, out0.P),
+                       jnp.where(any_valid, oc.nu, 0.0), jnp.where(any_valid, oc.S, eye), any_valid,
+                       jnp.where(any_valid, oc.dof, 0), validated)
+            return new, out
+        lw = weights(ap, d2, logdet, gated)
+        top = jnp.max(lw)
+        top = jnp.where(jnp.isfinite(top), top, 0.0)
+        e = jnp.exp(lw - top)
+        beta = e / jnp.sum(e)
+        x, P = _mixture(beta, pred, states)
+        new = pred._replace(x=x, P=P)
+        ox, oP = _mixture(beta, Out(out0.x, out0.P), Out(outs.x, outs.P))
+        nu = jnp.einsum("k,km->m", beta[1:], outs.nu)
+        out = _out(out0, ox, oP, nu, outs.S[0], any_valid, jnp.where(any_valid, outs.dof[0], 0), validated)
+        if rule == "pdaf":
+            return new, out
+        # IPDA: the target's existence
+        psi_pred = ap["p_survive"] * state[1]
+        # 1 − δ = (λ(1 − P_D P_G) + Σ P_D Nᵢ)/λ
+        one_minus_delta = jnp.exp(top + jnp.log(jnp.sum(e)) - jnp.log(ap["clutter_density"]))
+        psi = one_minus_delta * psi_pred / (1.0 - psi_pred + one_minus_delta * psi_pred)
+        psi = jnp.where(scanned, psi, psi_pred)
+        return (new, psi), out._replace(aux={"existence": psi})
+
+    def coast(params, state, meas):
+        inner = state[0] if wrap_state else state
+        bp, ap = split(params)
+        absent = Meas(jnp.zeros((m,), jnp.result_type(meas.z)), meas.t, jnp.asarray(True), jnp.zeros((m,), bool))
+        pred, out0 = (base.coast or base.step)(bp, inner, absent)
+        out = out0._replace(validated=jnp.full((), jnp.nan, out0.x.dtype))
+        if not wrap_state:
+            return pred, out
+        psi = ap["p_survive"] * state[1]
+        return (pred, psi), out._replace(aux={"existence": psi})
+
+    def init(params, prior):
+        bp, ap = split(params)
+        g = base.init(bp, prior)
+        return (g, jnp.asarray(ap["existence0"], g.x.dtype)) if wrap_state else g
+
+    return Filter(init=init, step=step, params=None, coast=coast, layout=base.layout)
+
+
+def _split_nested(params):
+    return params["base"], params
+
+
+def _check_probability(where, name, value, *, upper_open=False):
+    v = float(value)
+    if not (0.0 < v < 1.0 if upper_open else 0.0 < v <= 1.0):
+        raise ValueError(f"{where}: {name} = {value!r}: must be a probability in (0, 1{')' if upper_open else ']'}")
+    return v
+
+
+def _numbers(where, base, gate, p_detect, clutter_density, m):
+    if not isinstance(base, Filter):
+        raise TypeError(f"{where}: base = {base!r}: must be a tracklab.Filter with a Gaussian state")
+    if not (isinstance(m, int) and m >= 1):
+        raise ValueError(f"{where}: m = {m!r}: must be the number of components of a return, an integer >= 1")
+    gate = chi2_gate(0.99, m) if gate is None else float(gate)
+    if not (gate > 0 and math.isfinite(gate)):
+        raise ValueError(f"{where}: gate = {gate!r}: must be a number > 0 (a χ² threshold on d²)")
+    density = float(clutter_density)
+    if not (density > 0 and math.isfinite(density)):
+        raise ValueError(f"{where}: clutter_density = {clutter_density!r}: must be a number > 0 (per unit volume "
+                         "of the measurement space)")
+    return {"gate": jnp.asarray(gate), "p_detect": jnp.asarray(_check_probability(where, "p_detect", p_detect)),
+            "clutter_density": jnp.asarray(density)}
+
+
+def nearest_neighbour(base: Filter, m: int, *, gate: float | None = None) -> Filter:
+    """``base`` updated with the validated return of least d² (see the module's doc); ``m``: the
+    components of a return; ``gate`` γ (default: P_G = 0.99). params {"base", "gate"}."""
+    numbers = _numbers("tracklab.filters.nearest_neighbour", base, gate, 1.0, 1.0, m)
+    flt = associate(base, "nn", _split_nested, m)
+    return flt._replace(params={"base": base.params, "gate": numbers["gate"]})
+
+
+def pdaf(base: Filter, m: int, *, clutter_density: float, p_detect: float = 1.0, gate: float | None = None) -> Filter:
+    """The PDAF of ``base`` (see the module's doc): ``m`` the components of a return,
+    ``clutter_density`` λ (per unit volume of the measurement space), ``p_detect`` P_D, ``gate``
+    γ (default: P_G = 0.99). params {"base", "gate", "p_detect", "clutter_density"}."""
+    numbers = _numbers("tracklab.filters.pdaf", base, gate, p_detect, clutter_density, m)
+    return associate(base, "pdaf", _split_nested, m)._replace(params={"base": base.params, **numbers})
+
+
+def ipda(base: Filter, m: int, *, clutter_density: float, p_detect: float = 1.0, gate: float | None = None,
+         p_survive: float = 0.98, existence0: float = 0.9) -> Filter:
+    """The IPDA of ``base``: the PDAF's update and the target's existence probability (see the
+    module's doc), ``p_survive`` p_S per step, ``existence0`` its prior. params as ``pdaf``'s
+    and {"p_survive", "existence0"}."""
+    where = "tracklab.filters.ipda"
+    numbers = _numbers(where, base, gate, p_detect, clutter_density, m)
+    numbers["p_survive"] = jnp.asarray(_check_probability(where, "p_survive", p_survive))
+    numbers["existence0"] = jnp.asarray(_check_probability(where, "existence0", existence0, upper_open=True))
+    return associate(base, "ipda", _split_nested, m, wrap_state=True)._replace(params={"base": base.params, **numbers})
+
+
+# ------------------------------------------------------------------------- declarations
+
+GATE = Param("validation gate γ on d² = νᵀS⁻¹ν; default: the gate a target return passes with probability 0.99",
+             positive, "", tune=True)
+ASSUMED_P_DETECT = Param("the detection probability the filter assumes; default the sensor's", unit_interval, "",
+                         tune=True)
+ASSUMED_DENSITY = Param("the clutter density λ the filter assumes; default the sensor's", positive,
+                        "per unit measurement volume", tune=True, sweep=True)
+P_SURVIVE = Param("probability that the target goes on existing from one step to the next", bounded(0.0, 1.0), "",
+                  0.98, tune=True)
+EXISTENCE0 = Param("the target's existence probability before the first scan", bounded(0.0, 1.0), "", 0.9, tune=True)
+
+
+def _clutter_of(meas):
+    """The cluttered sensor a filter sees (None: none)."""
+    return next((s for s in getattr(meas, "sensors", ()) if getattr(s, "max_returns", None)), None)
+
+
+def association_kinds(bases: Mapping) -> tuple:
+    """The kinds ``nn``, ``pdaf`` and ``ipda`` over the Gaussian filter kinds ``bases`` (name ->
+    FilterKind): a [[filter]] table names its base with ``base = "ekf"`` and holds the base's
+    fields (q or accel_sigma, r or the sensor's sigmas, …) beside the association's."""
+
+    def reader(rule):
+        def read(e):
+            name = e.string("base", "ekf", choices=tuple(bases))
+            base = bases[name]
+            if e.meas.kind not in base.accepts:
+                raise e.error("base", name, f"sees a '{e.meas.kind}' sensor: a base of kind "
+                              f"{' or '.join(n for n, b in bases.items() if e.meas.kind in b.accepts)}")
+            inner = type(e)(e.fields, base, e.meas, dim=e.dim, dt=e.dt, accel_sigma=e.accel_sigma,
+                            sigma_fields=e.sigma_fields)
+            model, params, options = base.read(inner)
+            m = e.meas.m
+            clutter = _clutter_of(e.meas)
+            params = dict(params)
+            params["gate"] = e.number("gate", chi2_gate(0.99, m), positive=True)
+            if rule != "nn":
+                pd = e.number("p_detect", float(np.asarray(e.meas.sensors[0].p_detect)))
+                if not 0.0 < pd <= 1.0:
+                    raise e.error("p_detect", pd, "must be a probability in (0, 1]")
+                params["p_detect"] = pd
+                density = None if clutter is None else float(np.asarray(clutter.density))
+                lam = e.number("clutter_density", density, nonneg=True)
+                if lam is None:
+                    raise e.error("clutter_density", None, "is required: the sensor has no clutter to take it from "
+                                  "(false alarms per unit volume of the measurement space)")
+                if rule == "ipda" and lam <= 0:
+                    raise e.error("clutter_density", lam, "must be > 0 for the IPDA (its existence update divides by it)")
+                params["clutter_density"] = lam
+            if rule == "ipda":
+                params["p_survive"] = e.number("p_survive", P_SURVIVE.default, lo=0.0, hi=1.0)
+                params["existence0"] = e.number("existence0", EXISTENCE0.default, lo=0.0, hi=1.0)
+                for k in ("p_survive", "existence0"):
+                    if not 0.0 < params[k] < 1.0:
+                        raise e.error(k, params[k], "must be a probability in (0, 1)")
+            return model, params, {"base": name, **options}
+
+        return read
+
+    def builder(rule):
+        def build(model, sensor, params, options):
+            options = dict(options)
+            base = bases[options.pop("base")]
+            flt = base.build(model, sensor, base.with_defaults(params), options)
+            return associate(flt, rule, lambda p: (p, p), sensor.m, wrap_state=rule == "ipda")._replace(params=params)
+
+        return build
+
+    common = {"q": PROCESS_NOISE, "r": MEASUREMENT_NOISE}
+    pda = {"gate": GATE, "p_detect": ASSUMED_P_DETECT, "clutter_density": ASSUMED_DENSITY}
+    kinds = (
+        FilterKind("nn", "nearest neighbour: the validated return of least d² (base = ekf, kf, …)", ANY_SENSOR,
+                   common | {"gate": GATE}, reader("nn"),
+                   builder("nn"), scans=True),
+        FilterKind("pdaf", "probabilistic data association filter (base = ekf, kf, …)", ANY_SENSOR, common | pda,
+                   reader("pdaf"), builder("pdaf"), scans=True),
+        FilterKind("ipda", "integrated PDA: the PDAF with the target's existence probability (base = ekf, kf, …)",
+                   ANY_SENSOR, common | pda | {"p_survive": P_SURVIVE, "existence0": EXISTENCE0}, reader("ipda"),
+                   builder("ipda"), scans=True),
+    )
+    return kinds
