@@ -170,3 +170,127 @@ def test_information_reduction_factor_limits():
     qs = [information_reduction_factor(lam, 0.9, (10.0, 10.0), 64, scans=50_000) for lam in (0.001, 0.01, 0.05)]
     assert qs[0] > qs[1] > qs[2] > 0.0
     assert qs[0] <= 0.9 + 0.02
+
+
+CLUTTER_FILE = """
+[experiment]
+name = "clutter_small"
+runs = 128
+seed = 3
+dt = 1.0
+steps = 60
+
+[scenario]
+kind = "constant_velocity"
+initial = [0.0, 10.0, 0.0, 5.0]
+accel_sigma = 0.5
+
+[sensor]
+kind = "cartesian"
+sigma = 10.0
+p_detect = 0.9
+clutter_density = 1e-4
+clutter_window = [120.0, 120.0]
+max_returns = 16
+
+[prior]
+pos_sigma = 10.0
+vel_sigma = 2.0
+
+[track_loss]
+distance = 60.0
+steps = 5
+
+[[filter]]
+kind = "nn"
+base = "kf"
+label = "NN"
+
+[[filter]]
+kind = "pdaf"
+base = "kf"
+label = "PDAF"
+
+[report]
+window = [21, 60]
+"""
+
+
+def _clutter_file(tmp_path, text=CLUTTER_FILE, name="clutter_small.toml"):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def test_clutter_statistics_do_not_depend_on_the_chunk_and_match_the_modified_riccati_equation(tmp_path):
+    """The same runs in chunks of 32 and 128 give the same lost tracks, loss curve and RMSE; the
+    PDAF's position RMSE over its runs on track is within 8 % of the steady state of Fortmann et
+    al.'s modified Riccati equation (an approximation: it averages the covariance over the
+    returns); the PCRLB with the information reduction factor lies below both; and the nearest
+    neighbour loses more tracks than the PDAF on the same runs."""
+    from tracklab.config import load_experiment
+    from tracklab.montecarlo.riccati import pdaf_steady_state
+
+    exp = load_experiment(_clutter_file(tmp_path))
+    a = exp.simulate(runs=128, seed=3)
+    exp_small = load_experiment(_clutter_file(tmp_path))
+    exp_small.chunk = 32
+    b = exp_small.simulate(runs=128, seed=3)
+    for label in ("NN", "PDAF"):
+        fa, fb = a["filters"][label], b["filters"][label]
+        assert fa["summary"]["lost"] == fb["summary"]["lost"]
+        np.testing.assert_allclose(fa["series"]["p_lost"], fb["series"]["p_lost"], rtol=0, atol=0)
+        np.testing.assert_allclose(fa["summary"]["rmse_pos"], fb["summary"]["rmse_pos"], rtol=1e-9)
+    nn, pd = a["filters"]["NN"]["summary"], a["filters"]["PDAF"]["summary"]
+    assert a["filters"]["PDAF"]["paired"]["p_lost"]["difference"] <= 0 and nn["lost"] >= pd["lost"]
+    lo, hi = a["filters"]["PDAF"]["intervals"]["p_lost"]
+    assert lo <= pd["p_lost"] <= hi
+    F = np.array([[1, 1, 0, 0], [0, 1, 0, 0], [0, 0, 1, 1], [0, 0, 0, 1.0]])
+    Qd = np.kron(np.eye(2), 0.25 * np.array([[0.25, 0.5], [0.5, 1.0]]))
+    P, _, q2 = pdaf_steady_state(F, Qd, H, 100.0 * np.eye(2), 0.9, 1e-4, chi2_gate(0.99, 2))
+    mre = math.sqrt(P[0, 0] + P[2, 2])
+    assert abs(pd["rmse_pos"] / mre - 1) < 0.08, (pd["rmse_pos"], mre, q2)
+    assert pd["pcrlb_pos"] < mre < nn["rmse_pos"] + 3 * a["filters"]["NN"]["half_width"]["rmse_pos"]
+    assert 1.0 < pd["validated_per_scan"] < 3.0
+
+
+@pytest.mark.parametrize("change, field", [
+    (('kind = "nn"\nbase = "kf"', 'kind = "kf"'), "filter[1].kind"),
+    (("[track_loss]\ndistance = 60.0\nsteps = 5\n", ""), "[track_loss]"),
+    (("max_returns = 16", "max_returns = 16\nclutter_coverage = [[0.0, 1.0], [0.0, 1.0]]"), "sensor.clutter_window"),
+    (("clutter_window = [120.0, 120.0]", "clutter_window = [120.0]"), "sensor.clutter_window"),
+    (('kind = "pdaf"\nbase = "kf"', 'kind = "pdaf"\nbase = "stf"'), "filter[2].base"),
+])
+def test_a_bad_clutter_file_is_refused_in_one_line(tmp_path, change, field):
+    from tracklab.config import load_experiment
+    from tracklab.errors import ConfigError
+
+    old, new = change
+    assert old in CLUTTER_FILE
+    with pytest.raises(ConfigError) as info:
+        load_experiment(_clutter_file(tmp_path, CLUTTER_FILE.replace(old, new)))
+    assert info.value.field == field and "\n" not in str(info.value), str(info.value)
+
+
+def test_the_pdaf_tuning_loss_has_the_gradient_of_its_finite_differences(tmp_path):
+    """PDAF's update is smooth in its numbers: the tuning loss's gradient in the unconstrained
+    coordinate of the gate and of q agrees with central finite differences on the same runs."""
+    from tracklab.config import load_experiment
+    from tracklab.studies.tune import objective
+
+    exp = load_experiment(_clutter_file(tmp_path))
+    obj = objective(exp, {"PDAF": ["gate", "q"]})
+    idx = jnp.arange(16, dtype=jnp.uint32)
+    with jax.enable_x64(True):
+        key = jax.random.key(0)
+        live = jnp.ones(16, bool)
+        f = lambda th: obj.losses(th, key, idx, live)["PDAF"]  # noqa: E731
+        theta = jax.tree_util.tree_map(jnp.asarray, obj.theta0)
+        g = jax.grad(f)(theta)
+        for name in ("gate", "q"):
+            h = 1e-5
+            up = {"PDAF": dict(theta["PDAF"], **{name: theta["PDAF"][name] + h})}
+            dn = {"PDAF": dict(theta["PDAF"], **{name: theta["PDAF"][name] - h})}
+            fd = (f(up) - f(dn)) / (2 * h)
+            assert abs(float(fd)) > 1e-6, (name, fd)  # the loss does depend on it
+            assert abs(float(g["PDAF"][name]) - float(fd)) <= 1e-4 * max(1.0, abs(float(fd))), (name, g, fd)

@@ -134,6 +134,7 @@ def _clutter(f, where, sn, sensor):
     ([[lo, hi], …] per component: a fixed box)."""
     if not any(sn.has(k) for k in CLUTTER_FIELDS):
         return sensor
+    sensor = dataclasses.replace(sensor, misses=True)  # detections drawn at any p_detect: one program for all
     m = sensor.m
     density = sn.number("clutter_density", required=True, nonneg=True)
     capacity = sn.integer("max_returns", 16, lo=1, hi=1024)

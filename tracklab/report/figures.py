@@ -297,7 +297,7 @@ def _track_loss(ctx):
     for l, f in filters.items():
         s = f["series"]
         p = arr(s["p_lost"])
-        ax.plot(t, 100 * p, label=f"{l}\n  {percent(f['summary'].get('p_lost'), sign=False)} lost by the end", **st[l])
+        ax.plot(t, 100 * p, label=f"{l}\n  {percent(f['summary'].get('p_lost'))} lost by the end", **st[l])
         ax.fill_between(t, 100 * arr(s["p_lost_lo"]), 100 * arr(s["p_lost_hi"]), color=st[l]["color"], alpha=0.18, lw=0)
     ax.set_ylabel("tracks lost by t (%)")
     ax.set_ylim(bottom=0)
@@ -307,17 +307,15 @@ def _track_loss(ctx):
         ax = axs[1, 0]
         for l, f in scans.items():
             ax.plot(t, arr(f["series"]["validated"]), label="_nolegend_", **st[l])
-        clutter = doc.get("clutter")
-        if clutter:
-            ax.axhline(clutter["false_alarms_per_scan"], color="0.4", lw=0.8, ls=":")
-            ax.text(t[0], clutter["false_alarms_per_scan"], " false alarms per scan in the clutter region",
-                    va="bottom", fontsize=7, color="0.3")
         ax.set_ylabel("returns validated per scan")
         ax.set_ylim(bottom=0)
         ax.grid(True, alpha=0.3)
     axs[-1, 0].set_xlabel("time (s)")
+    clutter = doc.get("clutter")
+    note = (f"; {clutter['false_alarms_per_scan']:.3g} false alarms per scan in the clutter region, "
+            f"P_D = {clutter['p_detect']:g}") if clutter else ""
     legend(fig, axs, f"bands: {percent(doc.get('level', 0.95))} Wilson intervals of the fraction lost; validated "
-                     "returns over the runs on track")
+                     f"returns over the runs on track{note}")
     fig.savefig(ctx["folder"] / "track_loss.png", dpi=110)
     ctx["plt"].close(fig)
 

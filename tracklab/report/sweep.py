@@ -37,8 +37,9 @@ _NOT_METRICS = ("runs", "diverged", "lost_lock", "healthy_runs")
 
 def _metrics(summary: dict) -> list[str]:
     """The columns of a sweep's table: the headline statistics of the world's summaries."""
-    if "pred_err_rms" in summary:  # open-loop tracking
-        return (["rmse_pos", "rmse_vel", "pred_err_rms"] + [k for k in summary if k.startswith("pred_err_max[")]
+    if "pred_err_rms" in summary:  # open-loop tracking (in clutter: its track loss first)
+        return ((["p_lost", "lost", "validated_per_scan"] if "p_lost" in summary else [])
+                + ["rmse_pos", "rmse_vel", "pred_err_rms"] + [k for k in summary if k.startswith("pred_err_max[")]
                 + ["nees", "nees_in_bounds"])
     return [k for k, v in summary.items() if k not in _NOT_METRICS and (v is None or isinstance(v, (int, float)))]
 
@@ -161,7 +162,8 @@ def _plot(doc, names, labels, folder):
             continue  # nothing to draw (e.g. no NEES in this world)
         if any(np.ma.is_masked(v) for v in values.values()):
             title += " — blank: no run without divergence"
-        positive = all(bool(np.all(v.compressed() > 0)) for v in values.values())
+        probability = metric.startswith("p_")  # on one linear 0-1 scale for every filter, each cell labelled
+        positive = not probability and all(bool(np.all(v.compressed() > 0)) for v in values.values())
         mark = dof if metric == "nees" and dof else None
         cols = min(len(labels), 3)
         rows = -(-len(labels) // cols)
@@ -182,7 +184,13 @@ def _plot(doc, names, labels, folder):
             else:
                 grid = vals.reshape(len(axes_vals[0]), len(axes_vals[1]))
                 shown = np.ma.log10(grid) if positive else grid
-                im = ax.pcolormesh(_edges(axes_vals[1], log[names[1]]), _edges(axes_vals[0], log[names[0]]), shown)
+                im = ax.pcolormesh(_edges(axes_vals[1], log[names[1]]), _edges(axes_vals[0], log[names[0]]), shown,
+                                   **({"vmin": 0.0, "vmax": 1.0} if probability else {}))
+                if probability:
+                    for (i, j), v in np.ndenumerate(grid):
+                        if not np.ma.is_masked(v):
+                            ax.text(axes_vals[1][j], axes_vals[0][i], f"{100 * v:.0f}%", ha="center", va="center",
+                                    fontsize=7, color="w" if v < 0.6 else "k")
                 if mark and len(axes_vals[0]) > 1 and len(axes_vals[1]) > 1:
                     level = np.log10(mark) if positive else mark
                     if np.nanmin(shown) < level < np.nanmax(shown):

@@ -165,6 +165,10 @@ def table_caption(stats) -> str:
                  f"for {loss['steps']} consecutive steps (lost for good), with the Wilson interval of their fraction; "
                  "time to loss: the mean time of the first of those steps, over the lost runs; validated/scan: returns "
                  "inside the gate per scan. Every other statistic is over the runs on track.")
+        over = stats.get("overflow") or {}
+        if over.get("scans"):
+            text += (f" {over['scans']} scans in {over['runs']} runs held more returns than their capacity of "
+                     f"{over['capacity']} (max_returns): their first {over['capacity']} were kept.")
         if _baseline(stats) is not None:
             text += f" Δ lost: difference in the fraction of lost tracks to {_baseline(stats)} on the same runs (pp: percentage points)."
     if any("max_track_err_p50" in s for s in summaries):

@@ -81,9 +81,13 @@ class Experiment(protocol.Experiment):
     target_precision: float | None = None  # runs = "auto": stop when every position RMSE is this tight (relative)
     track_loss: Any = None  # [track_loss]: the test a run's track is lost by (errors.TrackLoss), None: none
 
-    # what a sweep plots: (summary key, title)
-    sweep_metrics = (("rmse_pos", "time-averaged position RMSE ({pos})"), ("nees", "average NEES"),
-                     ("pred_err_rms", "RMS one-step prediction error ({pos})"))
+    @property
+    def sweep_metrics(self) -> tuple:
+        """What a sweep plots: (summary key, title); with a track-loss test its probability first
+        (over a clutter density and a detection probability: a tracker operating characteristic)."""
+        loss = (("p_lost", "probability of track loss"),) if self.track_loss is not None else ()
+        return loss + (("rmse_pos", "time-averaged position RMSE ({pos})" + (" of the runs on track" if loss else "")),
+                       ("nees", "average NEES"), ("pred_err_rms", "RMS one-step prediction error ({pos})"))
 
     @property
     def dim(self) -> int:
