@@ -48,7 +48,8 @@ def test_scan_false_alarm_count_and_positions_follow_their_laws():
     alarms uniform over their window (mean and variance); the detection among them."""
     lam_v = 3.0
     half = (60.0, 40.0)
-    sensor = Cluttered(Sensor("cartesian", 2, (5.0, 5.0), 1.0, dt=DT), lam_v / (4 * 60.0 * 40.0), half, None, 16)
+    # σ = 1 cm: the target's return is the one within 5 cm of the truth
+    sensor = Cluttered(Sensor("cartesian", 2, (0.01, 0.01), 1.0, dt=DT), lam_v / (4 * 60.0 * 40.0), half, None, 16)
     steps = 10_000
     truth = np.zeros((steps, 2))
     scans = _scans(sensor, steps, 1, truth)
@@ -61,13 +62,15 @@ def test_scan_false_alarm_count_and_positions_follow_their_laws():
     chi2 = float(np.sum((counts - steps * p) ** 2 / (steps * p)))
     assert chi2 < 26.1, chi2  # χ²₈ at 0.999
     pts = scans[returns]
-    far = np.any(np.abs(pts) > 4 * 5.0, axis=1)  # leave out the target's return (σ = 5)
+    far = np.any(np.abs(pts) > 0.05, axis=1)  # leave out the target's return
     clutter = pts[far]
     assert np.all(np.abs(clutter) <= np.array(half) + 1e-9)
-    # uniform on the window minus the target's neighbourhood: check the variance on the far part
-    assert abs(np.mean(clutter[:, 0])) < 3.0 and abs(np.mean(clutter[:, 1])) < 2.0
+    assert len(clutter) == n_false.sum()
+    # uniform on the window: mean 0 and variance w²/3 per axis (30 000 false alarms)
+    np.testing.assert_allclose(clutter.mean(axis=0), 0.0, atol=1.5)
+    np.testing.assert_allclose(clutter.var(axis=0), np.square(half) / 3, rtol=0.03)
     # the target's return sits at any row of the scan, not at a fixed one
-    near = np.all(np.abs(scans) < 4 * 5.0, axis=-1)  # (steps, rows)
+    near = np.all(np.abs(scans) < 0.05, axis=-1)  # (steps, rows)
     rows = np.argmax(near, axis=1)[near.any(axis=1)]
     assert len(np.unique(rows)) == 16 and np.max(np.bincount(rows)) < 0.1 * len(rows)
 
@@ -278,15 +281,18 @@ def test_the_pdaf_tuning_loss_has_the_gradient_of_its_finite_differences(tmp_pat
     from tracklab.config import load_experiment
     from tracklab.studies.tune import objective
 
-    exp = load_experiment(_clutter_file(tmp_path))
+    text = CLUTTER_FILE.replace('[[filter]]\nkind = "nn"\nbase = "kf"\nlabel = "NN"\n', "")
+    text = text.replace("steps = 60", "steps = 30").replace("window = [21, 60]", "window = [1, 30]")
+    exp = load_experiment(_clutter_file(tmp_path, text))
+    assert [f.label for f in exp.filters] == ["PDAF"]
     obj = objective(exp, {"PDAF": ["gate", "q"]})
     idx = jnp.arange(16, dtype=jnp.uint32)
     with jax.enable_x64(True):
         key = jax.random.key(0)
         live = jnp.ones(16, bool)
-        f = lambda th: obj.losses(th, key, idx, live)["PDAF"]  # noqa: E731
+        f = jax.jit(lambda th: obj.losses(th, key, idx, live)["PDAF"])
         theta = jax.tree_util.tree_map(jnp.asarray, obj.theta0)
-        g = jax.grad(f)(theta)
+        g = jax.jit(jax.grad(lambda th: obj.losses(th, key, idx, live)["PDAF"]))(theta)
         for name in ("gate", "q"):
             h = 1e-5
             up = {"PDAF": dict(theta["PDAF"], **{name: theta["PDAF"][name] + h})}
@@ -294,3 +300,51 @@ def test_the_pdaf_tuning_loss_has_the_gradient_of_its_finite_differences(tmp_pat
             fd = (f(up) - f(dn)) / (2 * h)
             assert abs(float(fd)) > 1e-6, (name, fd)  # the loss does depend on it
             assert abs(float(g["PDAF"][name]) - float(fd)) <= 1e-4 * max(1.0, abs(float(fd))), (name, g, fd)
+
+
+def test_the_pdaf_mixture_reduction_equals_its_gain_form():
+    """For a base whose covariance depends on z the PDAF reduces the mixture of its hypotheses; for
+    one whose covariance does not (a KF) it uses the gain form. A KF whose covariance only seems to
+    depend on z (plus 0·z) takes the first path: the two agree."""
+    steps = 25
+    lam = 4.0 / (4 * 80.0 * 80.0)
+    sensor = Cluttered(Sensor("cartesian", 2, (5.0, 5.0), 0.8, dt=DT), lam, (80.0, 80.0), None, 16)
+    zs = _scans(sensor, steps, 11, _truth(steps))
+    x0, P0 = np.array([0.0, 10.0, 0.0, 5.0]), np.diag([25.0, 4.0, 25.0, 4.0])
+    with jax.enable_x64(True):
+        base = kf(F, H, Q, R)
+
+        def step(params, state, meas):
+            new, out = base.step(params, state, meas)
+            touch = 0.0 * jnp.sum(jnp.where(jnp.isfinite(meas.z), meas.z, 0.0))
+            return new._replace(P=new.P + touch), out._replace(P=out.P + touch)
+
+        seeming = base._replace(step=step)
+        flts = [pdaf(b, 2, clutter_density=lam, p_detect=0.8) for b in (base, seeming)]
+    (xa, Pa, _), (xb, Pb, _) = (_run(f, zs, x0, P0) for f in flts)
+    np.testing.assert_allclose(xa, xb, rtol=1e-10, atol=1e-8)
+    np.testing.assert_allclose(Pa, Pb, rtol=1e-10, atol=1e-8)
+
+
+def test_ones_own_pdaf_from_python_is_the_built_in_one():
+    """tracklab.experiment with a Cluttered sensor: a PDAF over one's own KF (a FilterSpec) gives the
+    built-in kind's numbers on the same runs; a plain filter on scans is refused in one line."""
+    import tracklab
+    from tracklab.errors import ConfigError
+    from tracklab.scenarios import ConstantVelocity
+
+    sc = ConstantVelocity(dt=1.0, steps=40, initial=(0.0, 10.0, 0.0, 5.0), accel_sigma=0.5)
+    sen = Cluttered(Sensor("cartesian", 2, (10.0, 10.0), 0.9), 2e-4, (120.0, 120.0), None, 16)
+    Qd = np.kron(np.eye(2), 0.25 * np.array([[0.25, 0.5], [0.5, 1.0]]))
+    with jax.enable_x64(True):
+        mine = pdaf(kf(F, H, Qd, 100.0 * np.eye(2)), 2, clutter_density=2e-4, p_detect=0.9)
+    exp = tracklab.experiment(sc, sen, [{"kind": "pdaf", "base": "kf", "label": "PDAF"},
+                                        tracklab.FilterSpec("mine", mine)],
+                              runs=64, prior={"pos_sigma": 10.0, "vel_sigma": 2.0}, track_loss=(60.0, 5))
+    doc = exp.simulate()
+    a, b = doc["filters"]["PDAF"]["summary"], doc["filters"]["mine"]["summary"]
+    assert a["lost"] == b["lost"] and a["rmse_pos"] == pytest.approx(b["rmse_pos"], rel=1e-9)
+    with pytest.raises(ConfigError) as info:
+        tracklab.experiment(sc, sen, [tracklab.FilterSpec("plain", kf(F, H, Qd, 100.0 * np.eye(2)))],
+                            track_loss=(60.0, 5))
+    assert "\n" not in str(info.value) and "scan" in str(info.value)

@@ -26,10 +26,12 @@ from tracklab.scenarios import Generated, Scenario
 from tracklab.sensors import (
     SENSOR_SIGMAS,
     SENSORS,
+    Cluttered,
     CustomSensor,
     Sensor,
     SensorSuite,
 )
+from tracklab.worlds.tracking.errors import TrackLoss
 from tracklab.worlds.tracking.experiment import Experiment, FilterConfig
 from tracklab.worlds.tracking.lanes import FilterSpec
 
@@ -39,7 +41,7 @@ WHERE = "tracklab.experiment"  # what the one-line errors name in place of a fil
 def _suite(sensors, scenario) -> SensorSuite:
     if isinstance(sensors, SensorSuite):
         items = list(sensors.sensors)
-    elif isinstance(sensors, (Sensor, CustomSensor)):
+    elif isinstance(sensors, (Sensor, CustomSensor, Cluttered)):
         items = [sensors]
     elif isinstance(sensors, (list, tuple)):
         items = list(sensors)
@@ -51,6 +53,12 @@ def _suite(sensors, scenario) -> SensorSuite:
     out, names = [], set()
     for i, s in enumerate(items):
         field = f"sensors[{i}]"
+        clutter = None
+        if isinstance(s, Cluttered):  # checked as its sensor, then its false alarms
+            if len(items) > 1:
+                raise ConfigError(WHERE, field, "Cluttered", "clutter needs the experiment's only sensor")
+            clutter, s = s, s.sensor
+            field = f"{field}.sensor"
         if not isinstance(s, (Sensor, CustomSensor)):
             raise ConfigError(WHERE, field, type(s).__name__, "must be a tracklab.sensors.Sensor or CustomSensor")
         if isinstance(s, Sensor):
@@ -76,8 +84,26 @@ def _suite(sensors, scenario) -> SensorSuite:
             s = s.keyed()
         if not s.report_mask(scenario.steps).any():
             raise ConfigError(WHERE, f"{field}.offset", s.offset, "the sensor reports at no step of the run")
-        out.append(s)
+        out.append(s if clutter is None else _cluttered(clutter, s, f"sensors[{i}]"))
     return SensorSuite(tuple(out))
+
+
+def _cluttered(c: Cluttered, sensor, field) -> Cluttered:
+    """``c`` around its checked ``sensor``, its numbers checked as a file's are."""
+    m = sensor.m
+    if not is_real(c.density) or not (np.isfinite(c.density) and c.density >= 0):
+        raise ConfigError(WHERE, f"{field}.density", c.density, "must be a number >= 0 (false alarms per unit volume "
+                          "of the measurement space)")
+    half = np.asarray(c.half_width, float) if np.size(c.half_width) else np.zeros(0)
+    if half.shape != (m,) or not np.all(np.isfinite(half)) or np.any(half <= 0):
+        raise ConfigError(WHERE, f"{field}.half_width", c.half_width, f"must be {m} numbers > 0: the clutter "
+                          f"region's half-widths ({', '.join(sensor.names)})")
+    if c.center is not None and (np.shape(c.center) != (m,) or not np.all(np.isfinite(np.asarray(c.center, float)))):
+        raise ConfigError(WHERE, f"{field}.center", c.center, f"must be None (about the target) or {m} finite numbers")
+    if isinstance(c.max_returns, bool) or not isinstance(c.max_returns, (int, np.integer)) or not 1 <= c.max_returns <= 1024:
+        raise ConfigError(WHERE, f"{field}.max_returns", c.max_returns, "must be an integer in [1, 1024]")
+    return Cluttered(dataclasses.replace(sensor, misses=True), float(c.density), tuple(half.tolist()),
+                     None if c.center is None else tuple(float(v) for v in c.center), int(c.max_returns))
 
 
 def _describe(obj):
@@ -87,7 +113,9 @@ def _describe(obj):
         for fld in dataclasses.fields(obj):
             v = getattr(obj, fld.name)
             v = v.fn if isinstance(v, Code) else v
-            if callable(v):
+            if dataclasses.is_dataclass(v):  # a cluttered sensor's sensor
+                v = _describe(v)
+            elif callable(v):
                 v = f"{getattr(v, '__module__', '?')}:{getattr(v, '__qualname__', type(v).__name__)}"
             elif v is not None and not isinstance(v, (str, bool, int, float, tuple, list)):
                 v = np.asarray(v).tolist()
@@ -112,7 +140,8 @@ def _filter_table(fc) -> dict:
 def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: int = 1000, seed: int = 0,
                prior: dict | None = None, window: tuple[int, int] | None = None, windows: dict | None = None,
                chunk: int | None = None, precision: str = "float64", level: float = 0.95,
-               baseline: str | None = None, target_precision: float | None = None) -> Experiment:
+               baseline: str | None = None, target_precision: float | None = None,
+               track_loss: tuple[float, int] | None = None) -> Experiment:
     """An open-loop experiment from Python objects (see the module's doc).
 
     ``prior``: ``pos_sigma`` (m), ``vel_sigma`` (m/s), ``acc_sigma`` (the prior std of states
@@ -122,7 +151,8 @@ def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: in
     intervals; ``baseline``: the filter the paired differences are to (default the first);
     ``target_precision``: run until every filter's position-RMSE interval is within ± that
     fraction of it, ``runs`` at most (as ``runs = "auto"`` in a file). ``chunk``: runs per
-    chunk (None: the default).
+    chunk (None: the default). ``track_loss``: (distance, steps), the track-loss test of a file's
+    ``[track_loss]`` (required with a ``Cluttered`` sensor; steps may be left out: 5).
 
     Refused (``ConfigError``, one line): besides what a file's reader refuses, a scenario whose
     ``dt`` is not a finite number > 0 or whose ``steps`` is not an integer >= 1, ``filters`` not
@@ -207,6 +237,7 @@ def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: in
         raise ConfigError(WHERE, "windows", kind_of(windows), 'must be None or a dict {name: [t0, t1] (seconds) or '
                           '"rest"}, as [report.windows] in a file')
     pred_windows = pred_windows_of(WHERE, dict(windows or {}), w, steps, dt)
+    loss = _loss(track_loss, suite)
     raw = {
         "experiment": {"name": name, "runs": int(runs), "seed": int(seed), "dt": dt, "steps": steps,
                        "precision": precision, "built": "python"},
@@ -220,7 +251,24 @@ def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: in
     return Experiment(path=None, name=name, runs=int(runs), seed=int(seed), dt=dt, steps=steps, chunk=chunk,
                       scenario=scenario, sensor=suite, filters=entries, prior=prior, window=(int(w[0]), int(w[1])),
                       raw=raw, precision=precision, pred_windows=pred_windows, level=float(level), baseline=baseline,
-                      target_precision=target_precision)
+                      target_precision=target_precision, track_loss=loss)
+
+
+def _loss(track_loss, suite):
+    """``track_loss`` as the experiment's test (``TrackLoss``), checked as a file's [track_loss]."""
+    cluttered = any(isinstance(s, Cluttered) for s in suite.sensors)
+    if track_loss is None:
+        if cluttered:
+            raise ConfigError(WHERE, "track_loss", None, "is required with a cluttered sensor: (distance, steps), a "
+                              "track lost after `steps` consecutive steps with its position error beyond `distance`")
+        return None
+    t = tuple(track_loss) if isinstance(track_loss, (list, tuple)) else (track_loss,)
+    distance, steps = (t + (5,))[:2] if len(t) in (1, 2) else (None, None)
+    if not is_real(distance) or not (np.isfinite(distance) and distance > 0):
+        raise ConfigError(WHERE, "track_loss", track_loss, "must be (distance > 0, steps >= 1)")
+    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
+        raise ConfigError(WHERE, "track_loss", track_loss, "must be (distance > 0, steps >= 1)")
+    return TrackLoss(float(distance), int(steps))
 
 
 __all__ = ["experiment"]

@@ -46,7 +46,7 @@ import numpy as np
 
 from tracklab.filters.core import Filter, Meas, Out, select
 from tracklab.filters.kind import ANY_SENSOR, MEASUREMENT_NOISE, PROCESS_NOISE, FilterKind
-from tracklab.linalg import mahalanobis2_logdet
+from tracklab.linalg import mahalanobis2_logdet, mm
 from tracklab.parameters import Param, bounded, positive, unit_interval
 
 
@@ -85,14 +85,46 @@ def _scan(meas: Meas, m: int):
     return jnp.where(returns[:, None], Z, 0.0), returns, scanned
 
 
-def _mixture(weights, g0, gs):
+def _mixture(weights, g0, gs, shared_P):
     """The mean and covariance of the mixture of ``g0`` (weight ``weights[0]``) and the hypotheses
-    ``gs`` (x (K, n), P (K, n, n); weights ``weights[1:]``): (x, P)."""
+    ``gs`` (x (K, n), P (K, n, n); weights ``weights[1:]``): (x, P). ``shared_P``: every
+    hypothesis has the same P (an update whose covariance does not depend on z), added once."""
+    # elementwise products and sums (a dot product under vmap is a library call per run on the CPU)
     w0, w = weights[0], weights[1:]
-    x = w0 * g0.x + jnp.einsum("k,kn->n", w, gs.x)
+    x = w0 * g0.x + jnp.sum(w[:, None] * gs.x, axis=0)
     d0, d = g0.x - x, gs.x - x
-    P = w0 * (g0.P + jnp.outer(d0, d0)) + jnp.einsum("k,kij->ij", w, gs.P + d[:, :, None] * d[:, None, :])
+    spread = jnp.sum(w[:, None, None] * (d[:, :, None] * d[:, None, :]), axis=0)
+    own = jnp.sum(w) * gs.P[0] if shared_P else jnp.sum(w[:, None, None] * gs.P, axis=0)
+    P = w0 * (g0.P + d0[:, None] * d0[None, :]) + own + spread
     return x, 0.5 * (P + P.T)
+
+
+def _gain_form(one, z_bar, beta, nus, nu_bar, pred, out0):
+    """The PDAF as Bar-Shalom & Tse write it, for an update affine in z with a covariance that does
+    not depend on it: x = x⁻ + G ν̄ (the update on z̄, whose innovation is ν̄), P = β₀ P⁻ + (1 − β₀)
+    P_c + G (Σ βᵢ νᵢ νᵢᵀ − ν̄ ν̄ᵀ) Gᵀ, with the gain G = ∂x/∂z by forward differentiation (m
+    tangents of one update); the same in the reporting frame. ((x, P), (x_out, P_out))."""
+    state_c, out_c = one(z_bar)
+    G, G_out = jax.jacfwd(lambda z: (one(z)[0].x, one(z)[1].x))(z_bar)
+    spread = (jnp.sum(beta[1:, None, None] * (nus[:, :, None] * nus[:, None, :]), axis=0)
+              - nu_bar[:, None] * nu_bar[None, :])
+    b0 = beta[0]
+
+    def reduced(P_pred, P_c, G):
+        P = b0 * P_pred + (1.0 - b0) * P_c + mm(mm(G, spread), G.T)
+        return 0.5 * (P + P.T)
+
+    return ((state_c.x, reduced(pred.P, state_c.P, G)), (out_c.x, reduced(out0.P, out_c.P, G_out)))
+
+
+def _unbatched(fn, Z) -> bool:
+    """Whether ``fn``'s output is the same for every row of ``Z`` (it does not depend on z): found
+    when tracing, by asking ``vmap`` for an unmapped output (the probe itself computes nothing)."""
+    try:
+        jax.eval_shape(jax.vmap(fn, out_axes=None), Z)
+    except ValueError:
+        return False
+    return True
 
 
 def _out(out0: Out, x, P, nu, S, valid, dof, validated, aux=None) -> Out:
@@ -110,10 +142,16 @@ def associate(base: Filter, rule: str, split, m: int, *, wrap_state=False) -> Fi
         absent = Meas(jnp.zeros((m,), Z.dtype), meas.t, jnp.asarray(True), jnp.zeros((m,), bool))
         pred, out0 = step0(bp, state, absent)
         every = jnp.ones((m,), bool)
-        states, outs = jax.vmap(lambda z: base.step(bp, state, Meas(z, meas.t, jnp.asarray(True), every)))(Z)
-        d2, logdet = jax.vmap(mahalanobis2_logdet)(outs.S, outs.nu)
+        one = lambda z: base.step(bp, state, Meas(z, meas.t, jnp.asarray(True), every))  # noqa: E731
+        states, outs = jax.vmap(one)(Z)
+        shared = (_unbatched(lambda z: one(z)[1].S, Z), _unbatched(lambda z: _gaussian(one(z)[0], "association").P, Z),
+                  _unbatched(lambda z: one(z)[1].P, Z))
+        if shared[0]:  # S is the same for every return (a KF's, an EKF's): its factor once
+            d2, logdet = jax.vmap(mahalanobis2_logdet, in_axes=(None, 0))(outs.S[0], outs.nu)
+        else:
+            d2, logdet = jax.vmap(mahalanobis2_logdet)(outs.S, outs.nu)
         gated = returns & (d2 <= ap["gate"])
-        return ap, pred, out0, states, outs, d2, logdet, gated, scanned
+        return ap, pred, out0, states, outs, d2, logdet, gated, scanned, shared, one, Z
 
     def weights(ap, d2, logdet, gated):
         """Log-weights (K + 1,): the prediction's, then each hypothesis' (−inf where not validated)."""
@@ -124,7 +162,7 @@ def associate(base: Filter, rule: str, split, m: int, *, wrap_state=False) -> Fi
 
     def step(params, state, meas):
         inner = state[0] if wrap_state else state
-        ap, pred, out0, states, outs, d2, logdet, gated, scanned = hypotheses(params, inner, meas)
+        ap, pred, out0, states, outs, d2, logdet, gated, scanned, shared, one, Z = hypotheses(params, inner, meas)
         _gaussian(pred, "association")
         n_valid = jnp.sum(gated)
         any_valid = n_valid > 0
@@ -143,11 +181,15 @@ def associate(base: Filter, rule: str, split, m: int, *, wrap_state=False) -> Fi
         top = jnp.max(lw)
         top = jnp.where(jnp.isfinite(top), top, 0.0)
         e = jnp.exp(lw - top)
-        beta = e / jnp.sum(e)
-        x, P = _mixture(beta, pred, states)
+        total = jnp.sum(e)
+        beta = jnp.where(total > 0, e / jnp.where(total > 0, total, 1.0), jnp.arange(len(e)) == 0)  # none: keep x⁻
+        nu = jnp.sum(beta[1:, None] * outs.nu, axis=0)
+        if shared[1] and shared[2]:  # the update's covariance does not depend on z (KF, EKF, UKF): the gain form
+            (x, P), (ox, oP) = _gain_form(one, Z[0] - outs.nu[0] + nu, beta, outs.nu, nu, pred, out0)
+        else:  # the mixture of the hypotheses reduced to its mean and covariance
+            x, P = _mixture(beta, pred, states, shared[1])
+            ox, oP = _mixture(beta, Out(out0.x, out0.P), Out(outs.x, outs.P), shared[2])
         new = pred._replace(x=x, P=P)
-        ox, oP = _mixture(beta, Out(out0.x, out0.P), Out(outs.x, outs.P))
-        nu = jnp.einsum("k,km->m", beta[1:], outs.nu)
         out = _out(out0, ox, oP, nu, outs.S[0], any_valid, jnp.where(any_valid, outs.dof[0], 0), validated)
         if rule == "pdaf":
             return new, out

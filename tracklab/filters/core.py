@@ -128,12 +128,13 @@ def masked_meas(meas: Meas):
 
 
 def trace_problem(flt: Filter, n: int, m: int, params=None, precision: str = "float64", *,
-                  outputs: bool = True) -> str | None:
+                  outputs: bool = True, returns: int | None = None) -> str | None:
     """Why ``flt`` cannot run on a state of ``n`` and measurements of ``m`` components (None if it
     can): ``init`` and ``step`` traced on shapes alone (nothing compiles), their outputs checked
     against the contract (``Out`` with x (n,), P (n, n), optional x_pred (n,), nu (k,) with
     S (k, k); a state of the same structure and shapes as ``init``'s). Traced in the
     ``precision`` the filter will run in (JAX keeps what it traced in one mode for the other).
+    ``returns``: a cluttered sensor's scans, z of shape (returns, m) (a filter of scans).
     ``outputs=False``: only that it traces, keeps its state's shapes and gives nu (k,) with S
     (k, k) if either (``run_filter``, which reports x and P in whatever shapes the filter gives)."""
     params = flt.params if params is None else params
@@ -144,11 +145,15 @@ def trace_problem(flt: Filter, n: int, m: int, params=None, precision: str = "fl
             params = jax.tree_util.tree_map(
                 lambda a: jnp.asarray(a, dtype) if jnp.issubdtype(jnp.result_type(a), jnp.floating) else a, params)
             state = jax.eval_shape(flt.init, params, Prior(f64(n), f64(n, n)))
-            state2, out = jax.eval_shape(flt.step, params, state, Meas(f64(m), f64(), jax.ShapeDtypeStruct((), bool)))
+            z = f64(m) if returns is None else f64(returns, m)
+            state2, out = jax.eval_shape(flt.step, params, state, Meas(z, f64(), jax.ShapeDtypeStruct((), bool)))
     except BaseException as e:  # noqa: BLE001 - the user's functions: any error, a sys.exit too
         if isinstance(e, KeyboardInterrupt):
             raise
-        return f"fails when traced with a state of {n} and a measurement of {m} components: {failure(e)}"
+        what = f"a measurement of {m} components" if returns is None else f"a scan of {returns} returns of {m} components"
+        hint = (" (a cluttered sensor's scans need a filter of scans: tracklab.filters.pdaf(your filter, m, …), "
+                "nearest_neighbour or ipda)") if returns is not None else ""
+        return f"fails when traced with a state of {n} and {what}: {failure(e)}{hint}"
     if not isinstance(out, Out):
         return f"step returns {type(out).__name__} as its output: expected tracklab.filters.Out(x, P, …)"
     shapes = lambda t: jax.tree_util.tree_map(lambda a: a.shape, t)  # noqa: E731

@@ -517,7 +517,10 @@ def plot_example(doc, example, t, dim, folder: Path, st=None):
                 ax = axes[row, a]
                 col = 2 * a + j
                 if kind == "state":
-                    if z is not None and j == 0:
+                    if z is not None and j == 0 and z.ndim == 3:  # scans: every return, false alarms too
+                        ax.plot(np.repeat(t, z.shape[1]), z[:, :, a].ravel(), ".", color="0.7", ms=2,
+                                label="returns (scan)")
+                    elif z is not None and j == 0:
                         ax.plot(t, z[:, a], ".", color="0.7", ms=2, label="measured")
                     ax.plot(t, truth[:, col], "k-", lw=1.5, label="true")
                     for label, x in est.items():

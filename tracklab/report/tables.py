@@ -164,7 +164,7 @@ def table_caption(stats) -> str:
         text += (f" lost tracks: runs whose position error stayed beyond {loss['distance']:g} {stats.get('units', ['m'])[0]} "
                  f"for {loss['steps']} consecutive steps (lost for good), with the Wilson interval of their fraction; "
                  "time to loss: the mean time of the first of those steps, over the lost runs; validated/scan: returns "
-                 "inside the gate per scan. Every other statistic is over the runs on track.")
+                 "inside the gate per scan. Every other statistic is over the runs on track (never lost).")
         over = stats.get("overflow") or {}
         if over.get("scans"):
             text += (f" {over['scans']} scans in {over['runs']} runs held more returns than their capacity of "

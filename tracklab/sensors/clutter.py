@@ -10,8 +10,8 @@
   noise-free measurement (``about_target``: a gate-sized window that moves with it) or fixed
   (``center`` given: the sensor's coverage). Angle components are wrapped to (−π, π].
 
-A scan is a fixed-capacity array (``max_returns``, m) — the returns in random order, the
-unused rows NaN — so that every run and step has the same shapes. A scan whose returns
+A scan is a fixed-capacity array (``max_returns``, m) — the detection at a random row, the
+false alarms in the others, the unused rows NaN — so that every run and step has the same shapes. A scan whose returns
 (detection and false alarms) pass the capacity is *overflowed*: its first ``max_returns``
 returns are kept (the detection among them), and ``overflowed`` tells the world, which counts
 and reports such scans. Between report epochs the scan is all NaN.
@@ -127,7 +127,7 @@ class Cluttered:
         return n + detected.astype(jnp.int32) > self.max_returns
 
     def measure_step(self, draws_k, k, steps, p):
-        """Step k's scan (capacity, m) of the target at ``p`` (dim,): the returns in random order,
+        """Step k's scan (capacity, m) of the target at ``p`` (dim,): the detection at a random row,
         NaN rows unused."""
         (noise, detect), _, u_pos, u_order = draws_k
         dtype = p.dtype
@@ -139,14 +139,16 @@ class Cluttered:
         alarms = center + (2.0 * u_pos.astype(dtype) - 1.0) * jnp.asarray(self.half_width, dtype)  # (K, m)
         if any(self.angle_mask):
             alarms = jnp.where(jnp.asarray(self.angle_mask), wrap(alarms), alarms)
-        # the detection first (when there is one), then the false alarms, the capacity kept
-        rows = jnp.concatenate([target[None], alarms])  # (K + 1, m)
-        first = jnp.where(detected, 0, 1)
-        rows = jax.lax.dynamic_slice_in_dim(rows, first, K)
-        kept = jnp.arange(K) < jnp.minimum(n + detected.astype(jnp.int32), K)
-        rows = jnp.where(kept[:, None], rows, jnp.nan)
-        order = (jnp.arange(K) + jnp.floor(u_order * K).astype(jnp.int32)) % K  # the detection at a random row
-        return rows[order]
+        # the detection at a random row s, the false alarms in the rows before it and after it, in
+        # order (elementwise selections: no gather under vmap)
+        j = jnp.arange(K)
+        s = jnp.minimum(jnp.floor(u_order * K).astype(jnp.int32), K - 1)
+        alarm = j - (detected & (j > s)).astype(jnp.int32)  # which false alarm row j holds
+        after = jnp.concatenate([alarms[-1:], alarms[:-1]])  # alarm j - 1 in row j
+        rows = jnp.where((detected & (j > s))[:, None], after, alarms)
+        rows = jnp.where((detected & (j == s))[:, None], target[None, :], rows)
+        kept = jnp.where(detected & (j == s), True, alarm < n)
+        return jnp.where(kept[:, None], rows, jnp.nan)
 
     def measure(self, key, pos):
         """Scans of a position sequence ``pos`` (T, dim) -> (T, capacity, m)."""

@@ -99,7 +99,8 @@ class FilterSpec:
     def with_code(self, scenario, sensor) -> "FilterSpec":
         """This filter as structure by value: its ``program_key`` at the experiment's shapes."""
         _, seen = self.sees(sensor)
-        return replace(self, code=program_key(self.filter, self.report_layout(scenario.dim).n, seen.m))
+        return replace(self, code=program_key(self.filter, self.report_layout(scenario.dim).n, seen.m,
+                                              scan_returns(seen)))
 
     def report_layout(self, dim: int):
         return self.layout or self.filter.layout or interleaved(dim)
@@ -134,9 +135,13 @@ class FilterSpec:
         if why:
             return f"layout {why}"
         _, seen = self.sees(sensor)
-        return trace_problem(flt, layout.n, seen.m)
+        return trace_problem(flt, layout.n, seen.m, returns=scan_returns(seen))
 
-def program_key(flt: Filter, n: int, m: int) -> str | None:
+def scan_returns(sensor) -> int | None:
+    """A cluttered sensor's scan capacity (its z is (returns, m)); None for a sensor without clutter."""
+    return next((s.max_returns for s in getattr(sensor, "sensors", ()) if getattr(s, "max_returns", None)), None)
+
+def program_key(flt: Filter, n: int, m: int, returns: int | None = None) -> str | None:
     """What a filter compiles to, as a digest (``pytree.traced_key``): its ``init``, ``step`` and
     ``coast`` traced (float64) with a state of ``n`` and measurements of ``m`` components, each
     measurement with and without its report pattern, and the params' pytree. Filters with the same
@@ -150,7 +155,7 @@ def program_key(flt: Filter, n: int, m: int) -> str | None:
         state = jax.eval_shape(flt.init, params, Prior(f64(n), f64(n, n)))
         calls = [(flt.init, (params, Prior(f64(n), f64(n, n))))]
         for present in (None, jax.ShapeDtypeStruct((m,), bool)):
-            meas = Meas(f64(m), f64(), jax.ShapeDtypeStruct((), bool), present)
+            meas = Meas(f64(m) if returns is None else f64(returns, m), f64(), jax.ShapeDtypeStruct((), bool), present)
             calls += [(fn, (params, state, meas)) for fn in (flt.step, flt.coast) if fn is not None]
         key = traced_key(calls)
     return None if key is None else f"{jax.tree_util.tree_structure(params)} {key}"

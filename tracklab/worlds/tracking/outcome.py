@@ -29,7 +29,7 @@ from tracklab.montecarlo.statistics import REPORT_WINDOW
 from tracklab.scenarios import Scenario
 from tracklab.sensors import SensorSuite
 from tracklab.sensors.clutter import scan_information_scale
-from tracklab.worlds.tracking.errors import sample_names, unpack
+from tracklab.worlds.tracking.errors import TrackLoss, sample_names, unpack
 from tracklab.worlds.tracking.lanes import FilterSpec
 from tracklab.worlds.tracking.scan import (
     TrackingParams,
@@ -126,6 +126,7 @@ def monte_carlo(
     progress: Callable[[int, int], None] | None = None,
     precision: str = "float64",
     windows: dict[str, np.ndarray] | None = None,
+    track_loss: tuple[float, int] | None = None,
 ) -> MonteCarloResult:
     """Per-step error statistics of several filters over ``runs`` Monte-Carlo runs.
 
@@ -137,7 +138,8 @@ def monte_carlo(
     random draws are the same (made in float32 in both). ``key``: an integer seed, a JAX key
     (``jax.random.key``) or a raw uint32[2] one (``jax.random.PRNGKey``); run i draws from
     ``fold_in(key, i)``. ``windows`` (name -> (steps,) bool mask) are where each run's largest
-    one-step prediction error is taken.
+    one-step prediction error is taken. ``track_loss``: (distance, steps), the track-loss test
+    (``errors.TrackLoss``; needed for the statistics of tracking in clutter).
 
     Refused before anything compiles, in one line naming the argument: ``scenario`` not a
     tracklab scenario, or its ``dt`` not a finite number > 0; ``specs`` empty, or holding
@@ -151,10 +153,22 @@ def monte_carlo(
     if not isinstance(sensor, SensorSuite):
         sensor = SensorSuite((sensor,))
     chunk = int(chunk or default_chunk(scenario, sensor, runs=runs))
-    structure = TrackingStructure(tuple(specs), windows_of(windows), chunk)
+    loss = None
+    if track_loss is not None:
+        t = tuple(track_loss) if isinstance(track_loss, (list, tuple)) else ()
+        if len(t) != 2 or not numeric_ok(t[0]) or isinstance(t[1], bool) or not isinstance(t[1], (int, np.integer)) \
+                or t[1] < 1:
+            raise refuse("tracklab.monte_carlo", "track_loss", track_loss, "must be (distance > 0, steps >= 1)")
+        loss = TrackLoss(float(t[0]), int(t[1]))
+    structure = TrackingStructure(tuple(specs), windows_of(windows), chunk, loss)
     filter_params = list(params) if params is not None else [s.filter.params for s in specs]
     p = TrackingParams(scenario, sensor, np.asarray(P0_cv, float), 0.0, filter_params)
     return run(structure, p, runs, key, progress=progress, precision=precision)
+
+
+def numeric_ok(v) -> bool:
+    """A finite real number > 0."""
+    return not isinstance(v, bool) and isinstance(v, (int, float, np.integer, np.floating)) and np.isfinite(v) and v > 0
 
 
 def _check(scenario, specs, runs, key, P0_cv, chunk, params, precision, windows, progress):

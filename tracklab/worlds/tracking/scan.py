@@ -19,6 +19,10 @@ divergence, progress, timing and the host-side sums.
 A run in which a filter produces NaN/inf or a covariance that is not positive definite is
 *diverged* for that filter: it is counted and left out of that filter's averages (the runner
 runs the chunk a second time without it); it never stops the batch.
+
+With a track-loss test (``TrackingStructure.loss``, ``errors.TrackLoss``) a run whose track a
+filter loses leaves that filter's per-step sums from the step the loss is declared, and its
+per-run samples (the summaries and their intervals) altogether: no second pass is needed.
 """
 
 from __future__ import annotations
@@ -224,10 +228,11 @@ def _chunk(structure: TrackingStructure):
             r, first = pending
             runmax, acc = per_run_acc
             bad_any = bad_any | r.bad
-            ok = live & ~pick(exclude, g) & ~bad_any
-            # the track-loss test on the step before's errors (none before the first step)
+            # the track-loss test on the step before's errors (none before the first step): a run
+            # leaves the step's sums from the step its track is declared lost
             beyond, lost = jax.vmap(lambda e, b, l: track_loss(structure.loss, e, b, l))(r.e, *loss)
             loss = jax.tree_util.tree_map(lambda new, old: jnp.where(started, new, old), (beyond, lost), loss)
+            ok = live & ~pick(exclude, g) & ~bad_any & ~loss[1]
             sums, maxima, runmax = jax.vmap(lambda r, ok, m, l: lane_sums(r, ok, m, w_k, dtype, live & l))(
                 r, ok, runmax, loss[1])
             acc = acc + jax.vmap(lambda r: run_samples(r, w_k.astype(dtype)))(r)
@@ -311,15 +316,13 @@ def _chunk(structure: TrackingStructure):
                 ln = lanes[i]
                 key = runner.lane_key(i)
                 sums, maxima, run0 = (a[1:] for a in out[key])
-                ok = live & ~exclude[i] & ~bad_any[j]
+                ok = live & ~exclude[i] & ~bad_any[j] & ~lost[j]  # the runs' samples: those never lost
                 added[key] = {"sums": sums, "diverged": jnp.sum((live & bad_any[j]).astype(dtype))}  # cut by unpack
                 for w, name in enumerate(names):  # sum over runs of each run's largest |error| (per axis, then norm)
                     added[key][f"runmax_pred@{name}"] = jnp.sum(jnp.where(ok, runmax[j, w], 0.0), axis=-1)
                 largest[key] = {"maxima": maxima}
                 first[key] = {"example_x": run0[:, :2 * d], "example_var": run0[:, 2 * d:]}
-                # a lost track is left out of the filter's statistics like a diverged run: they are
-                # those of the runs on track
-                flags[i] = live & (bad_any[j] | lost[j])
+                flags[i] = live & bad_any[j]
                 lost_final[i] = live & lost[j]
                 values[i] = jnp.concatenate([acc[j] / jnp.asarray(lengths, dtype)[:, None], runmax[j].reshape(-1, B)])
                 oks[i] = ok
