@@ -348,3 +348,17 @@ def test_ones_own_pdaf_from_python_is_the_built_in_one():
         tracklab.experiment(sc, sen, [tracklab.FilterSpec("plain", kf(F, H, Qd, 100.0 * np.eye(2)))],
                             track_loss=(60.0, 5))
     assert "\n" not in str(info.value) and "scan" in str(info.value)
+
+
+def test_an_ipda_track_is_lost_when_its_existence_probability_falls(tmp_path):
+    """[track_loss] existence: the IPDA's track is also lost when its own existence probability stays
+    below the threshold; the PDAF (which reports none) is judged by its error alone, as before."""
+    from tracklab.config import load_experiment
+
+    text = CLUTTER_FILE.replace('kind = "nn"', 'kind = "ipda"').replace('label = "NN"', 'label = "IPDA"')
+    plain = load_experiment(_clutter_file(tmp_path, text)).simulate(runs=64)
+    strict = load_experiment(_clutter_file(tmp_path, text.replace("steps = 5\n", "steps = 5\nexistence = 0.99\n"),
+                                           "strict.toml")).simulate(runs=64)
+    assert plain["filters"]["IPDA"]["summary"]["lost"] == plain["filters"]["PDAF"]["summary"]["lost"]
+    assert strict["filters"]["PDAF"]["summary"]["lost"] == plain["filters"]["PDAF"]["summary"]["lost"]
+    assert strict["filters"]["IPDA"]["summary"]["lost"] > plain["filters"]["IPDA"]["summary"]["lost"]

@@ -341,7 +341,8 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
 
 def _track_loss(f, raw, suite):
     """[track_loss]: distance (in the scenario's position unit) and steps (default 5): a run's track is
-    lost at the first of ``steps`` consecutive steps whose position error is beyond ``distance``.
+    lost at the first of ``steps`` consecutive steps whose position error is beyond ``distance``, or
+    (``existence``, optional) whose reported existence probability (IPDA) is below it.
     Required with a cluttered sensor; None when the file has none."""
     cluttered = any(isinstance(s, Cluttered) for s in suite.sensors)
     if "track_loss" not in raw:
@@ -352,7 +353,11 @@ def _track_loss(f, raw, suite):
     if not isinstance(raw["track_loss"], dict):
         raise ConfigError(f, "track_loss", raw["track_loss"], "must be a table: [track_loss] distance = …, steps = …")
     tl = Section(f, "track_loss", raw["track_loss"])
-    loss = TrackLoss(tl.number("distance", required=True, positive=True), tl.integer("steps", 5, lo=1, hi=MAX_STEPS))
+    existence = tl.number("existence", None)
+    if existence is not None and not 0.0 < existence < 1.0:
+        raise ConfigError(f, "track_loss.existence", existence, "must be a probability in (0, 1)")
+    loss = TrackLoss(tl.number("distance", required=True, positive=True), tl.integer("steps", 5, lo=1, hi=MAX_STEPS),
+                     existence)
     tl.check_unknown()
     return loss
 

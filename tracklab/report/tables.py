@@ -162,7 +162,9 @@ def table_caption(stats) -> str:
     loss = stats.get("track_loss")
     if loss:
         text += (f" lost tracks: runs whose position error stayed beyond {loss['distance']:g} {stats.get('units', ['m'])[0]} "
-                 f"for {loss['steps']} consecutive steps (lost for good), with the Wilson interval of their fraction; "
+                 f"for {loss['steps']} consecutive steps"
+                 + (f" or whose existence probability (IPDA) stayed below {loss['existence']:g}" if "existence" in loss else "")
+                 + " (lost for good), with the Wilson interval of their fraction; "
                  "time to loss: the mean time of the first of those steps, over the lost runs; validated/scan: returns "
                  "inside the gate per scan. Every other statistic is over the runs on track (never lost).")
         over = stats.get("overflow") or {}

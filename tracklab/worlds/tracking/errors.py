@@ -36,13 +36,15 @@ class RunErrors(NamedTuple):
     e_pred: Any  # (d,) one-step position prediction error
     var: Any  # (2d,) the filter's own variances of e (the diagonal of its covariance), CV layout
     validated: Any  # returns it validated in a scan (a filter of scans); NaN: no scan, or not such a filter
+    existence: Any  # the target's existence probability it reports (IPDA); NaN: none
 
     @classmethod
     def zeros(cls, d, B, dtype):
         """In the place of the errors before the first step (the scan's first carry)."""
         z = lambda *shape: jnp.zeros(shape + (B,), dtype)
         no = jnp.zeros((B,), bool)
-        return cls(z(2 * d), z(), z(), no, z(), no, z(), z(d), z(2 * d), jnp.full((B,), jnp.nan, dtype))
+        nan = jnp.full((B,), jnp.nan, dtype)
+        return cls(z(2 * d), z(), z(), no, z(), no, z(), z(d), z(2 * d), nan, nan)
 
 def pick(a, idx, axis=0):
     """``a``'s entries ``idx`` (known at trace time) along ``axis`` by static slices, which fuse
@@ -65,6 +67,7 @@ class ErrorInputs(NamedTuple):
     dof: Any  # innovation components used
     e_pred: Any  # (d,) one-step position prediction error (NaN when the filter reports none)
     validated: Any  # returns validated in a scan (NaN: none made, or not a filter of scans)
+    existence: Any  # the target's existence probability the filter reports (NaN: none)
 
 def error_inputs(out, truth_k, pv, dtype) -> ErrorInputs:
     """One run's ``ErrorInputs`` at one step from a filter's output ``out`` (an ``Out``), the
@@ -82,7 +85,9 @@ def error_inputs(out, truth_k, pv, dtype) -> ErrorInputs:
     else:  # no prediction reported: its statistics are NaN, shown as missing
         e_pred = jnp.full((len(pv) // 2,), jnp.nan, dtype)
     validated = jnp.asarray(jnp.nan if out.validated is None else out.validated, dtype)
-    return ErrorInputs(e, Pe, sum_elements(out.x), nu, S, valid, dof, e_pred, validated)
+    aux = out.aux if isinstance(out.aux, dict) else {}
+    existence = jnp.asarray(aux.get("existence", jnp.nan), dtype)
+    return ErrorInputs(e, Pe, sum_elements(out.x), nu, S, valid, dof, e_pred, validated, existence)
 
 def errors_of(a: ErrorInputs, dtype) -> RunErrors:
     """One run's errors from its ``ErrorInputs``."""
@@ -98,7 +103,7 @@ def errors_of(a: ErrorInputs, dtype) -> RunErrors:
     # fixed dtypes, so that the scan's carry is known without tracing the step (RunErrors.zeros)
     f = lambda v: jnp.asarray(v, dtype)
     return RunErrors(f(a.e), f(nees), f(nis), jnp.asarray(a.valid, bool), f(a.dof), bad, f(logdet_s), f(a.e_pred),
-                      f(jnp.diagonal(a.Pe)), f(a.validated))
+                      f(jnp.diagonal(a.Pe)), f(a.validated), f(a.existence))
 
 def run_errors(out, truth_k, pv, dtype) -> RunErrors:
     """One run's errors at one step from a filter's output ``out`` (see ``error_inputs``)."""
@@ -202,18 +207,23 @@ def lane_sums(r: RunErrors, ok, runmax, w_k, dtype, lost=None):
 
 class TrackLoss(NamedTuple):
     """The track-loss test: a run's track is lost at the first of ``steps`` consecutive steps whose
-    position error is beyond ``distance`` (or not finite); lost stays lost."""
+    position error is beyond ``distance`` (or not finite) or, with ``existence``, whose
+    existence probability (a filter that reports one: IPDA) is below it; lost stays lost."""
 
     distance: float
     steps: int
+    existence: float | None = None
 
 
-def track_loss(test: TrackLoss | None, e, beyond_steps, lost):
-    """One step of the test on position errors ``e`` ((2d, B), CV layout): the runs' updated count
-    of consecutive steps beyond the distance and whether each is lost."""
+def track_loss(test: TrackLoss | None, e, existence, beyond_steps, lost):
+    """One step of the test on position errors ``e`` ((2d, B), CV layout) and reported existence
+    probabilities (B,) (NaN: none): the runs' updated count of consecutive steps failing it and
+    whether each is lost."""
     if test is None:
         return beyond_steps, lost
     beyond = ~(norm(e[0::2]) <= test.distance)  # NaN: beyond
+    if test.existence is not None:
+        beyond = beyond | (existence < test.existence)
     beyond_steps = jnp.where(beyond, beyond_steps + 1, 0)
     return beyond_steps, lost | (beyond_steps >= test.steps)
 

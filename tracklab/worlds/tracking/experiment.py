@@ -286,7 +286,8 @@ def clutter_of(exp, res) -> dict:
     passed their capacity (empty when the experiment has none of these)."""
     doc = {}
     if res.loss is not None:
-        doc["track_loss"] = {"distance": float(res.loss.distance), "steps": int(res.loss.steps)}
+        doc["track_loss"] = {"distance": float(res.loss.distance), "steps": int(res.loss.steps)} | (
+            {"existence": float(res.loss.existence)} if res.loss.existence is not None else {})
     cluttered = next((s for s in exp.sensor.sensors if getattr(s, "max_returns", None)), None) if exp.sensor else None
     if cluttered is not None:
         doc["clutter"] = {"density": float(np.asarray(cluttered.density)), "volume": float(cluttered.volume()),

@@ -230,7 +230,7 @@ def _chunk(structure: TrackingStructure):
             bad_any = bad_any | r.bad
             # the track-loss test on the step before's errors (none before the first step): a run
             # leaves the step's sums from the step its track is declared lost
-            beyond, lost = jax.vmap(lambda e, b, l: track_loss(structure.loss, e, b, l))(r.e, *loss)
+            beyond, lost = jax.vmap(lambda e, x, b, l: track_loss(structure.loss, e, x, b, l))(r.e, r.existence, *loss)
             loss = jax.tree_util.tree_map(lambda new, old: jnp.where(started, new, old), (beyond, lost), loss)
             ok = live & ~pick(exclude, g) & ~bad_any & ~loss[1]
             sums, maxima, runmax = jax.vmap(lambda r, ok, m, l: lane_sums(r, ok, m, w_k, dtype, live & l))(
