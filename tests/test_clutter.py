@@ -4,6 +4,7 @@ references written from the papers' equations, and the statistics of track loss.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -364,3 +365,57 @@ def test_the_track_loss_intervals_cover_the_truth_95_percent_of_the_time():
     margin = 3.29 * math.sqrt(0.95 * 0.05 / reps)
     assert abs(cover / reps - 0.95) < margin + 0.01, cover / reps  # Wilson is slightly conservative
     assert abs(cover_diff / reps - 0.95) < margin + 0.01, cover_diff / reps
+
+
+def test_a_pdaf_over_ones_own_filter_named_in_a_file_is_the_built_in_one(tmp_path):
+    """kind = "pdaf" with base = "own_filter:converted_kf" (the bundled CMKF of one's own, whose
+    covariance depends on the measurement: the mixture reduction) gives the built-in PDAF-CMKF's
+    numbers on the same runs; a factory that is not there is refused in one line."""
+    import shutil
+
+    from tracklab.config import load_experiment
+    from tracklab.errors import ConfigError
+
+    shutil.copy(Path(__file__).resolve().parents[1] / "experiments" / "own_filter.py", tmp_path)
+    text = """
+[experiment]
+name = "own_base"
+runs = 16
+dt = 0.5
+steps = 30
+
+[scenario]
+kind = "crossing"
+
+[sensor]
+kind = "polar"
+sigma_r = 100.0
+sigma_angle = 0.003
+p_detect = 0.9
+clutter_density = 0.01
+clutter_window = [600.0, 0.03]
+
+[prior]
+pos_sigma = 100.0
+vel_sigma = 50.0
+
+[track_loss]
+distance = 1000.0
+
+[[filter]]
+kind = "pdaf"
+base = "cmkf"
+label = "built in"
+
+[[filter]]
+kind = "pdaf"
+base = "own_filter:converted_kf"
+label = "own"
+accel_var = 1.0
+"""
+    doc = load_experiment(_clutter_file(tmp_path, text, "own_base.toml")).simulate()
+    a, b = doc["filters"]["built in"]["summary"], doc["filters"]["own"]["summary"]
+    assert a["lost"] == b["lost"] and b["rmse_pos"] == pytest.approx(a["rmse_pos"], rel=1e-7)
+    with pytest.raises(ConfigError) as info:
+        load_experiment(_clutter_file(tmp_path, text.replace("own_filter:converted_kf", "own_filter:nothing"), "bad.toml"))
+    assert info.value.field == "filter[2].base" and "\n" not in str(info.value)

@@ -32,7 +32,8 @@ from tracklab.config.fields import (
 from tracklab.config.studies import parse_studies
 from tracklab.errors import ConfigError, failure
 from tracklab.filters.context import filter_context
-from tracklab.filters.core import Filter
+from tracklab.filters.association import ASSOCIATION_FIELDS, associated, association_numbers
+from tracklab.filters.core import Filter, trace_problem
 from tracklab.filters.factory import declared
 from tracklab.filters.fusion import view_of
 from tracklab.filters.kind import Entry
@@ -410,17 +411,21 @@ def _seen(f, where, fs, suite, default=None):
     return tuple(dict.fromkeys(names))
 
 
-def _own_filter(f, i, fs, spec, suite, scenario, folders=()):
+def _own_filter(f, i, fs, spec, suite, scenario, folders=(), rule=None):
     """A [[filter]] whose kind names a factory: ``factory(FilterContext, **the table's other keys)``
     returns a ``Filter`` (its ``layout`` saying where position and velocity sit in its state). The
     numbers the factory declares (``tracklab.declare``) are checked against their declarations
     here and go into the filter's params; the filter is then structure by what it compiles to
-    (``FilterSpec.with_code``)."""
-    label = fs.label("label", spec.rpartition(":")[2])
+    (``FilterSpec.with_code``). With ``rule`` ("nn", "pdaf", "ipda": a table ``kind = "pdaf"``,
+    ``base = "module:factory"``) the factory's filter is the base of that association, whose numbers
+    (gate, p_detect, …) the table holds beside the factory's."""
+    field = "kind" if rule is None else "base"
+    label = fs.label("label", spec.rpartition(":")[2] if rule is None else rule)
     names = _seen(f, f"filter[{i}]", fs, suite)
-    options = {k: fs.get(k) for k in fs.table if k not in ("kind", "label", "sensors")}
+    own_keys = ("kind", "label", "sensors") + (ASSOCIATION_FIELDS if rule else ())
+    options = {k: fs.get(k) for k in fs.table if k not in own_keys}
     context = filter_context(scenario, suite.subset(names))
-    factory = factories.load_factory(f, f"filter[{i}].kind", spec, folders)
+    factory = factories.load_factory(f, f"filter[{i}].{field}", spec, folders)
     params = declared(factory)
     for name in params:
         try:
@@ -436,15 +441,30 @@ def _own_filter(f, i, fs, spec, suite, scenario, folders=()):
             shown = None if default is None else np.asarray(default).tolist()
             raise ConfigError(f, f"filter[{i}].{name}", None, f"its declared default ({shown}, from the experiment) "
                               f"{why.removeprefix('is ')}: give it in the table")
-    flt = factories.call_factory(f, f"filter[{i}].kind", spec, factory, context, options)
+    flt = factories.call_factory(f, f"filter[{i}].{field}", spec, factory, context, options)
     if not isinstance(flt, Filter):
-        raise ConfigError(f, f"filter[{i}].kind", spec, f"the factory returned {type(flt).__name__}: expected a "
+        raise ConfigError(f, f"filter[{i}].{field}", spec, f"the factory returned {type(flt).__name__}: expected a "
                           "tracklab.filters.Filter(init, step, params)")
-    own = FilterSpec(label, flt, kind=spec, sensors=names if names != tuple(s.name for s in suite.sensors) else (),
-                     declared=params)
+    sensors = names if names != tuple(s.name for s in suite.sensors) else ()
+    if rule is not None:  # the base sees one return at a time; the association, the scans
+        kind = KINDS[rule]
+        seen = suite.subset(names)
+        base = FilterSpec(label, flt, kind=spec, sensors=sensors, declared=params)
+        why = trace_problem(flt, base.report_layout(scenario.dim).n, seen.m)
+        if why:
+            raise ConfigError(f, f"filter[{i}].base", spec, f"the factory's filter {why}")
+        numbers = association_numbers(Entry(fs, kind, seen, dim=scenario.dim, dt=scenario.dt, accel_sigma=0.0,
+                                            sigma_fields=()), rule)
+        try:
+            flt = associated(flt, rule, numbers, seen.m)
+        except TypeError as e:
+            raise ConfigError(f, f"filter[{i}].base", spec, f"the factory's filter: {e}") from None
+        params = {**params, **{n: kind.params[n] for n in numbers}}
+        spec = f"{rule} of {spec}"
+    own = FilterSpec(label, flt, kind=spec, sensors=sensors, declared=params)
     why = own.problem(scenario, suite)
     if why:
-        raise ConfigError(f, f"filter[{i}].kind", spec, f"the factory's filter {why}")
+        raise ConfigError(f, f"filter[{i}].{field}", spec, f"the factory's filter {why}")
     return own.with_code(scenario, suite)
 
 
@@ -455,6 +475,8 @@ def parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q, scenario=N
     name = fs.string("kind", required=True)
     if is_factory(name):
         return _own_filter(f, i, fs, name, suite, scenario, folders)
+    if name in KINDS and KINDS[name].scans and is_factory(fs.get("base")):  # an association over one's own filter
+        return _own_filter(f, i, fs, fs.string("base"), suite, scenario, folders, rule=name)
     if name not in KINDS:
         raise ConfigError(f, f"filter[{i}].kind", name,
                           f"must be one of {', '.join(KINDS)}, or \"package.module:factory\" (a filter of one's own)")

@@ -293,6 +293,53 @@ def _clutter_of(meas):
     return next((s for s in getattr(meas, "sensors", ()) if getattr(s, "max_returns", None)), None)
 
 
+ASSOCIATION_FIELDS = ("base", "gate", "p_detect", "clutter_density", "p_survive", "existence0")
+
+
+def association_numbers(e, rule: str) -> dict:
+    """An association's own numbers from its [[filter]] table (``e``: a ``kind.Entry``): the gate
+    (default: P_G = 0.99), and for the PDAF and IPDA the P_D and λ they assume (default the
+    sensor's), for the IPDA p_S and the prior existence; each checked in one line."""
+    m = e.meas.m
+    clutter = _clutter_of(e.meas)
+    out = {"gate": e.number("gate", chi2_gate(0.99, m), positive=True)}
+    if rule != "nn":
+        pd = e.number("p_detect", float(np.asarray(e.meas.sensors[0].p_detect)))
+        if not 0.0 < pd <= 1.0:
+            raise e.error("p_detect", pd, "must be a probability in (0, 1]")
+        out["p_detect"] = pd
+        density = None if clutter is None else float(np.asarray(clutter.density))
+        lam = e.number("clutter_density", density, nonneg=True)
+        if lam is None:
+            raise e.error("clutter_density", None, "is required: the sensor has no clutter to take it from "
+                          "(false alarms per unit volume of the measurement space)")
+        if rule == "ipda" and lam <= 0:
+            raise e.error("clutter_density", lam, "must be > 0 for the IPDA (its existence update divides by it)")
+        out["clutter_density"] = lam
+    if rule == "ipda":
+        out["p_survive"] = e.number("p_survive", P_SURVIVE.default, lo=0.0, hi=1.0)
+        out["existence0"] = e.number("existence0", EXISTENCE0.default, lo=0.0, hi=1.0)
+        for k in ("p_survive", "existence0"):
+            if not 0.0 < out[k] < 1.0:
+                raise e.error(k, out[k], "must be a probability in (0, 1)")
+    return out
+
+
+def associated(flt: Filter, rule: str, numbers: dict, m: int) -> Filter:
+    """A filter of one's own (params a dict) under the association ``rule`` with its ``numbers``
+    (``association_numbers``), their params side by side: what ``base = "module:factory"`` gives."""
+    if not isinstance(flt.params, dict):
+        raise TypeError(f"its params are {type(flt.params).__name__}: an association in a file needs them as a dict "
+                        "(tracklab.declare's numbers are)")
+    keys = tuple(flt.params)
+    clash = sorted(set(keys) & set(numbers))
+    if clash:
+        raise TypeError(f"its params hold {clash[0]!r}, which the association sets: name it otherwise")
+    split = lambda p: ({k: p[k] for k in keys}, p)  # noqa: E731
+    out = associate(flt, rule, split, m, wrap_state=rule == "ipda")
+    return out._replace(params={**flt.params, **{k: jnp.asarray(v) for k, v in numbers.items()}})
+
+
 def association_kinds(bases: Mapping) -> tuple:
     """The kinds ``nn``, ``pdaf`` and ``ipda`` over the Gaussian filter kinds ``bases`` (name ->
     FilterKind): a [[filter]] table names its base with ``base = "ekf"`` and holds the base's
@@ -300,7 +347,10 @@ def association_kinds(bases: Mapping) -> tuple:
 
     def reader(rule):
         def read(e):
-            name = e.string("base", "ekf", choices=tuple(bases))
+            name = e.string("base", "ekf")
+            if name not in bases:
+                raise e.error("base", name, f"must be one of {', '.join(bases)}, or \"package.module:factory\" (a "
+                              "filter of one's own whose state is a Gaussian (x, P))")
             base = bases[name]
             if e.meas.kind not in base.accepts:
                 raise e.error("base", name, f"sees a '{e.meas.kind}' sensor: a base of kind "
@@ -308,30 +358,7 @@ def association_kinds(bases: Mapping) -> tuple:
             inner = type(e)(e.fields, base, e.meas, dim=e.dim, dt=e.dt, accel_sigma=e.accel_sigma,
                             sigma_fields=e.sigma_fields)
             model, params, options = base.read(inner)
-            m = e.meas.m
-            clutter = _clutter_of(e.meas)
-            params = dict(params)
-            params["gate"] = e.number("gate", chi2_gate(0.99, m), positive=True)
-            if rule != "nn":
-                pd = e.number("p_detect", float(np.asarray(e.meas.sensors[0].p_detect)))
-                if not 0.0 < pd <= 1.0:
-                    raise e.error("p_detect", pd, "must be a probability in (0, 1]")
-                params["p_detect"] = pd
-                density = None if clutter is None else float(np.asarray(clutter.density))
-                lam = e.number("clutter_density", density, nonneg=True)
-                if lam is None:
-                    raise e.error("clutter_density", None, "is required: the sensor has no clutter to take it from "
-                                  "(false alarms per unit volume of the measurement space)")
-                if rule == "ipda" and lam <= 0:
-                    raise e.error("clutter_density", lam, "must be > 0 for the IPDA (its existence update divides by it)")
-                params["clutter_density"] = lam
-            if rule == "ipda":
-                params["p_survive"] = e.number("p_survive", P_SURVIVE.default, lo=0.0, hi=1.0)
-                params["existence0"] = e.number("existence0", EXISTENCE0.default, lo=0.0, hi=1.0)
-                for k in ("p_survive", "existence0"):
-                    if not 0.0 < params[k] < 1.0:
-                        raise e.error(k, params[k], "must be a probability in (0, 1)")
-            return model, params, {"base": name, **options}
+            return model, {**params, **association_numbers(e, rule)}, {"base": name, **options}
 
         return read
 
