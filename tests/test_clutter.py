@@ -226,36 +226,40 @@ def _clutter_file(tmp_path, text=CLUTTER_FILE, name="clutter_small.toml"):
     return path
 
 
-IPDA_TABLE = '\n[[filter]]\nkind = "ipda"\nbase = "kf"\nlabel = "IPDA"\n'
-
-
 def test_clutter_statistics_do_not_depend_on_the_chunk_and_match_the_modified_riccati_equation(tmp_path):
-    """The same runs in chunks of 32 and 128 give the same lost tracks, loss curve and RMSE; the
+    """The same runs in chunks of 32 and 128 give the same lost tracks, loss curve and RMSE (and in
+    float32 nearly the same); the
     PDAF's position RMSE over its runs on track is within 8 % of the steady state of Fortmann et
     al.'s modified Riccati equation (an approximation: it averages the covariance over the
-    returns); the PCRLB with the information reduction factor lies below both; the nearest
-    neighbour loses more tracks than the PDAF on the same runs; and with [track_loss] existence
+    returns); the PCRLB with the information reduction factor lies below both; and with [track_loss] existence
     the IPDA (the PDAF's estimates) loses the PDAF's tracks and those whose existence probability
     stays low."""
     from tracklab.config import load_experiment
     from tracklab.montecarlo.riccati import pdaf_steady_state
 
-    text = CLUTTER_FILE.replace("steps = 5\n", "steps = 5\nexistence = 0.6\n").replace("[report]", IPDA_TABLE + "\n[report]")
+    text = (CLUTTER_FILE.replace("steps = 5\n", "steps = 5\nexistence = 0.6\n")
+            .replace('kind = "nn"\nbase = "kf"\nlabel = "NN"', 'kind = "ipda"\nbase = "kf"\nlabel = "IPDA"'))
     exp = load_experiment(_clutter_file(tmp_path, text))
     a = exp.simulate(runs=128, seed=3)
     exp_small = load_experiment(_clutter_file(tmp_path, text))
     exp_small.chunk = 32
     b = exp_small.simulate(runs=128, seed=3)
+    # in single precision, on the same draws: the same tracks lost but for a gating decision or two
+    # that rounding flips, the RMSE within 1 %, nothing diverged
+    s32 = exp.simulate(runs=128, seed=3, precision="float32")
+    for label, f in a["filters"].items():
+        g = s32["filters"][label]["summary"]
+        assert g["diverged"] == 0 and abs(g["lost"] - f["summary"]["lost"]) <= 2, (label, g["lost"])
+        assert abs(g["rmse_pos"] / f["summary"]["rmse_pos"] - 1) < 1e-2, (label, g["rmse_pos"])
     ipda, pdaf_ = a["filters"]["IPDA"]["summary"], a["filters"]["PDAF"]["summary"]
     assert ipda["lost"] > pdaf_["lost"], (ipda["lost"], pdaf_["lost"])
-    assert a["filters"]["IPDA"]["paired"]["p_lost"]["difference"] > a["filters"]["PDAF"]["paired"]["p_lost"]["difference"]
-    for label in ("NN", "PDAF", "IPDA"):
+    assert a["filters"]["PDAF"]["paired"]["p_lost"]["difference"] < 0  # paired to the IPDA, the baseline
+    for label in ("PDAF", "IPDA"):
         fa, fb = a["filters"][label], b["filters"][label]
         assert fa["summary"]["lost"] == fb["summary"]["lost"]
         np.testing.assert_allclose(fa["series"]["p_lost"], fb["series"]["p_lost"], rtol=0, atol=0)
         np.testing.assert_allclose(fa["summary"]["rmse_pos"], fb["summary"]["rmse_pos"], rtol=1e-9)
-    nn, pd = a["filters"]["NN"]["summary"], a["filters"]["PDAF"]["summary"]
-    assert a["filters"]["PDAF"]["paired"]["p_lost"]["difference"] <= 0 and nn["lost"] >= pd["lost"]
+    pd = a["filters"]["PDAF"]["summary"]
     lo, hi = a["filters"]["PDAF"]["intervals"]["p_lost"]
     assert lo <= pd["p_lost"] <= hi
     F = np.array([[1, 1, 0, 0], [0, 1, 0, 0], [0, 0, 1, 1], [0, 0, 0, 1.0]])
@@ -263,7 +267,7 @@ def test_clutter_statistics_do_not_depend_on_the_chunk_and_match_the_modified_ri
     P, _, q2 = pdaf_steady_state(F, Qd, H, 100.0 * np.eye(2), 0.9, 1e-4, chi2_gate(0.99, 2))
     mre = math.sqrt(P[0, 0] + P[2, 2])
     assert abs(pd["rmse_pos"] / mre - 1) < 0.08, (pd["rmse_pos"], mre, q2)
-    assert pd["pcrlb_pos"] < mre < nn["rmse_pos"] + 3 * a["filters"]["NN"]["half_width"]["rmse_pos"]
+    assert pd["pcrlb_pos"] < mre
     assert 1.0 < pd["validated_per_scan"] < 3.0
 
 

@@ -122,12 +122,18 @@ def test_a_declared_filter_is_run_tuned_and_swept_from_the_command_line(folder, 
     assert main(["run", str(tuned_file), "--runs", "8", "--no-figures"]) == 0
     assert "| Singer, tuned | singer:singer |" in capsys.readouterr().out
 
-    for grid in ("filter[Singer].tau=5:20:2", "sensor.sigma_r=20:40:2", "sigma_m=0.5:2:2"):
-        assert main(["sweep", str(path), "--grid", grid, "--runs", "16", "--no-figures", "--out", "results/sw"]) == 0
-        doc = json.loads((folder / "results" / "sw" / "sweep.json").read_text())
-        rmse = [p["filters"]["Singer"]["summary"]["rmse_pos"] for p in doc["points"]]
-        assert len(rmse) == 2 and rmse[0] != rmse[1] and np.all(np.isfinite(rmse)), grid
-        assert "programs" not in capsys.readouterr().err  # one program: no line about several
+    # its declared number, the sensor's and a scale factor of its numbers: three axes, one program
+    grids = ("filter[Singer].tau=5:20:2", "sensor.sigma_r=20:40:2", "sigma_m=0.5:2:2")
+    assert main(["sweep", str(path), *(a for g in grids for a in ("--grid", g)), "--runs", "16", "--no-figures",
+                 "--out", "results/sw"]) == 0
+    assert "programs" not in capsys.readouterr().err  # one program: no line about several
+    doc = json.loads((folder / "results" / "sw" / "sweep.json").read_text())
+    points = [(p["values"], p["filters"]["Singer"]["summary"]["rmse_pos"]) for p in doc["points"]]
+    assert len(points) == 8 and np.all(np.isfinite([r for _, r in points]))
+    for axis in points[0][0]:  # each axis alone changes what runs
+        pairs = [(r1, r2) for v1, r1 in points for v2, r2 in points
+                 if v1[axis] < v2[axis] and all(v1[k] == v2[k] for k in v1 if k != axis)]
+        assert len(pairs) == 4 and all(r1 != r2 for r1, r2 in pairs), axis
 
 
 def test_a_declared_number_is_checked_against_its_declaration(folder, capsys):
