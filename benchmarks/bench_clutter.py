@@ -98,13 +98,12 @@ def scans_of(exp, runs):
 def _matrices(exp):
     import numpy as np
 
-    from tracklab.filters.association import chi2_gate
     from tracklab.models import cv
 
     m = cv(2, exp.dt)
     p = exp.params().filters[0]
     return (np.asarray(m.F), np.asarray(m.Q(float(p["q"]))), np.diag(np.asarray(p["r"], float)), float(p["gate"]),
-            float(p["p_detect"]), float(p["clutter_density"]), chi2_gate)
+            float(p["p_detect"]), float(p["clutter_density"]))
 
 
 def numpy_pdaf(exp, z, prior):
@@ -112,10 +111,10 @@ def numpy_pdaf(exp, z, prior):
     import numpy as np
     from scipy.special import gammainc
 
-    F, Q, R, gate, pd, lam, _ = _matrices(exp)
+    F, Q, R, gate, pd, lam = _matrices(exp)
     N, T, K, m = z.shape
     pg = gammainc(m / 2, gate / 2)
-    x = prior @ F.T * 0 + prior  # the prior one period before z[0]
+    x = prior.copy()  # the prior one period before z[0]
     P = np.broadcast_to(exp.prior_covariance(), (N, 4, 4)).copy()
     out = np.empty((N, T, 4))
     for k in range(T):
@@ -157,7 +156,7 @@ def filterpy_pdaf(exp, z, prior):
     from filterpy.kalman import ExtendedKalmanFilter
     from scipy.special import gammainc
 
-    F, Q, R, gate, pd, lam, _ = _matrices(exp)
+    F, Q, R, gate, pd, lam = _matrices(exp)
     N, T, K, m = z.shape
     pg = gammainc(m / 2, gate / 2)
     out = np.empty((N, T, 4))

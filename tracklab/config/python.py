@@ -31,6 +31,7 @@ from tracklab.sensors import (
     Sensor,
     SensorSuite,
 )
+from tracklab.sensors.clutter import cluttered_of
 from tracklab.worlds.tracking.errors import TrackLoss
 from tracklab.worlds.tracking.experiment import Experiment, FilterConfig
 from tracklab.worlds.tracking.lanes import FilterSpec
@@ -256,7 +257,7 @@ def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: in
 
 def _loss(track_loss, suite):
     """``track_loss`` as the experiment's test (``TrackLoss``), checked as a file's [track_loss]."""
-    cluttered = any(isinstance(s, Cluttered) for s in suite.sensors)
+    cluttered = cluttered_of(suite) is not None
     if track_loss is None:
         if cluttered:
             raise ConfigError(WHERE, "track_loss", None, "is required with a cluttered sensor: (distance, steps), a "

@@ -54,6 +54,7 @@ from tracklab.sensors import (
     Sensor,
     SensorSuite,
 )
+from tracklab.sensors.clutter import cluttered_of
 from tracklab.toml_fields import sigma_list
 from tracklab.worlds.tracking.errors import TrackLoss
 from tracklab.worlds.tracking.experiment import Experiment, FilterConfig
@@ -345,7 +346,7 @@ def _track_loss(f, raw, suite):
     lost at the first of ``steps`` consecutive steps whose position error is beyond ``distance``, or
     (``existence``, optional) whose reported existence probability (IPDA) is below it.
     Required with a cluttered sensor; None when the file has none."""
-    cluttered = any(isinstance(s, Cluttered) for s in suite.sensors)
+    cluttered = cluttered_of(suite) is not None
     if "track_loss" not in raw:
         if cluttered:
             raise ConfigError(f, "[track_loss]", None, "is required with a cluttered sensor: distance = … (a track is "
@@ -511,8 +512,7 @@ def parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q, scenario=N
         seen = "several sensors" if mkind == "suite" else f"a '{mkind}' sensor"
         raise ConfigError(f, f"filter[{i}].kind", kind.name, f"needs a sensor of kind {' or '.join(kind.accepts)}, but sees {seen}")
 
-    cluttered = any(isinstance(s, Cluttered) for s in meas.sensors)
-    if cluttered and not kind.scans:
+    if cluttered_of(meas) is not None and not kind.scans:
         raise ConfigError(f, f"filter[{i}].kind", kind.name, "sees a cluttered sensor's scans: name an association, "
                           f"kind = \"pdaf\" (or \"nn\", \"ipda\") with base = \"{kind.name}\"")
     entry = Entry(fs, kind, meas, dim=dim, dt=dt, accel_sigma=default_q, sigma_fields=SENSOR_SIGMAS.get(mkind, ()),

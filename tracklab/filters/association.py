@@ -46,10 +46,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from tracklab.checks import check_count, check_filter, check_positive, refuse
 from tracklab.filters.core import Filter, Meas, Out, select
 from tracklab.filters.kind import ANY_SENSOR, MEASUREMENT_NOISE, PROCESS_NOISE, FilterKind
 from tracklab.linalg import mahalanobis2_logdet, mm
+from tracklab.montecarlo.statistics import chi2_quantile
 from tracklab.parameters import Param, bounded, positive, unit_interval
+from tracklab.sensors.clutter import cluttered_of
 
 
 def gate_probability(gate, m: int):
@@ -59,12 +62,8 @@ def gate_probability(gate, m: int):
 
 @functools.lru_cache(maxsize=64)
 def chi2_gate(probability: float, m: int) -> float:
-    """The gate γ with P(χ²ₘ ≤ γ) = ``probability`` (bisection on ``gate_probability``)."""
-    lo, hi = 0.0, 1000.0
-    for _ in range(100):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if float(gate_probability(mid, m)) < probability else (lo, mid)
-    return 0.5 * (lo + hi)
+    """The gate γ with P(χ²ₘ ≤ γ) = ``probability``: the χ² quantile."""
+    return float(chi2_quantile(probability, m))
 
 
 def _gaussian(state, where: str):
@@ -199,7 +198,7 @@ def associate(base: Filter, rule: str, split, m: int, *, wrap_state=False) -> Fi
         # IPDA: the target's existence
         psi_pred = ap["p_survive"] * state[1]
         # 1 − δ = (λ(1 − P_D P_G) + Σ P_D Nᵢ)/λ
-        one_minus_delta = jnp.exp(top + jnp.log(jnp.sum(e)) - jnp.log(ap["clutter_density"]))
+        one_minus_delta = jnp.exp(top + jnp.log(total) - jnp.log(ap["clutter_density"]))
         psi = one_minus_delta * psi_pred / (1.0 - psi_pred + one_minus_delta * psi_pred)
         psi = jnp.where(scanned, psi, psi_pred)
         return (new, psi), out._replace(aux={"existence": psi})
@@ -228,26 +227,20 @@ def _split_nested(params):
 
 
 def _check_probability(where, name, value, *, upper_open=False):
-    v = float(value)
-    if not (0.0 < v < 1.0 if upper_open else 0.0 < v <= 1.0):
-        raise ValueError(f"{where}: {name} = {value!r}: must be a probability in (0, 1{')' if upper_open else ']'}")
+    """``value`` as a float if it is a probability in (0, 1] (``upper_open``: (0, 1))."""
+    v = check_positive(where, name, value)
+    if v > 1.0 or (upper_open and v == 1.0):
+        raise refuse(where, name, value, f"must be a probability in (0, 1{')' if upper_open else ']'}")
     return v
 
 
 def _numbers(where, base, gate, p_detect, clutter_density, m):
-    if not isinstance(base, Filter):
-        raise TypeError(f"{where}: base = {base!r}: must be a tracklab.Filter with a Gaussian state")
-    if not (isinstance(m, int) and m >= 1):
-        raise ValueError(f"{where}: m = {m!r}: must be the number of components of a return, an integer >= 1")
-    gate = chi2_gate(0.99, m) if gate is None else float(gate)
-    if not (gate > 0 and math.isfinite(gate)):
-        raise ValueError(f"{where}: gate = {gate!r}: must be a number > 0 (a χ² threshold on d²)")
-    density = float(clutter_density)
-    if not (density > 0 and math.isfinite(density)):
-        raise ValueError(f"{where}: clutter_density = {clutter_density!r}: must be a number > 0 (per unit volume "
-                         "of the measurement space)")
+    """An association's arguments checked (``tracklab.checks``: one line each) as its params."""
+    check_filter(where, "base", base)
+    m = check_count(where, "m", m)
+    gate = chi2_gate(0.99, m) if gate is None else check_positive(where, "gate", gate)
     return {"gate": jnp.asarray(gate), "p_detect": jnp.asarray(_check_probability(where, "p_detect", p_detect)),
-            "clutter_density": jnp.asarray(density)}
+            "clutter_density": jnp.asarray(check_positive(where, "clutter_density", clutter_density))}
 
 
 def nearest_neighbour(base: Filter, m: int, *, gate: float | None = None) -> Filter:
@@ -291,11 +284,6 @@ P_SURVIVE = Param("probability that the target goes on existing from one step to
 EXISTENCE0 = Param("the target's existence probability before the first scan", bounded(0.0, 1.0), "", 0.9, tune=True)
 
 
-def _clutter_of(meas):
-    """The cluttered sensor a filter sees (None: none)."""
-    return next((s for s in getattr(meas, "sensors", ()) if getattr(s, "max_returns", None)), None)
-
-
 ASSOCIATION_FIELDS = ("base", "gate", "p_detect", "clutter_density", "p_survive", "existence0")
 
 
@@ -304,7 +292,7 @@ def association_numbers(e, rule: str) -> dict:
     (default: P_G = 0.99), and for the PDAF and IPDA the P_D and λ they assume (default the
     sensor's), for the IPDA p_S and the prior existence; each checked in one line."""
     m = e.meas.m
-    clutter = _clutter_of(e.meas)
+    clutter = cluttered_of(e.meas)
     out = {"gate": e.number("gate", chi2_gate(0.99, m), positive=True)}
     if rule != "nn":
         pd = e.number("p_detect", float(np.asarray(e.meas.sensors[0].p_detect)))

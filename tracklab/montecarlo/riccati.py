@@ -19,7 +19,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from jax.scipy.special import gammainc
+
+from tracklab.filters.association import gate_probability
 
 
 def ball_volume(m: int, radius: float) -> float:
@@ -29,7 +30,7 @@ def ball_volume(m: int, radius: float) -> float:
 def pdaf_q2(density_w: float, p_detect: float, gate: float, m: int, scans: int = 40_000, seed: int = 0) -> float:
     """q₂ (see the module's doc) for whitened clutter density ``density_w``, P_D and gate γ."""
     rng = np.random.default_rng(seed)
-    pg = float(gammainc(m / 2.0, gate / 2.0))  # P(χ²ₘ ≤ γ)
+    pg = float(gate_probability(gate, m))
     r = math.sqrt(gate)
     n = rng.poisson(density_w * ball_volume(m, r), scans)
     K = int(n.max(initial=0)) + 1

@@ -113,26 +113,27 @@ class Cluttered:
         return ((noise, detect), random.uniform(k_count, (steps,)),
                 random.uniform(k_pos, (steps, self.max_returns, self.m)), random.uniform(k_order, (steps,)))
 
-    def _counts(self, draws_k, k, steps, dtype):
-        """(scanning, detected, false alarms drawn (capacity + 1: more than the capacity))."""
-        (noise, detect), u_count, _, _ = draws_k
+    def _counts(self, detect, u_count, k, steps, dtype):
+        """(scanning, detected, false alarms drawn (capacity + 1: more than the capacity)) at step k,
+        from its detection and count uniforms."""
         scanning = jnp.asarray(self.report_mask(steps))[k]
         detected = scanning & (detect < jnp.asarray(self.p_detect, jnp.float32))
         n = poisson_count(u_count.astype(dtype), self.mean_false_alarms().astype(dtype), self.max_returns)
         return scanning, detected, jnp.where(scanning, n, 0)
 
-    def overflowed(self, draws_k, k, steps, dtype=jnp.float32):
-        """Whether step k's scan has more returns than its capacity (some were not kept)."""
-        _, detected, n = self._counts(draws_k, k, steps, dtype)
+    def overflowed(self, detect, u_count, k, steps, dtype=jnp.float32):
+        """Whether step k's scan has more returns than its capacity (some were not kept), from that
+        step's detection and count uniforms (``draws``' first detection and second entries)."""
+        _, detected, n = self._counts(detect, u_count, k, steps, dtype)
         return n + detected.astype(jnp.int32) > self.max_returns
 
     def measure_step(self, draws_k, k, steps, p):
         """Step k's scan (capacity, m) of the target at ``p`` (dim,): the detection at a random row,
         NaN rows unused."""
-        (noise, detect), _, u_pos, u_order = draws_k
+        (noise, detect), u_count, u_pos, u_order = draws_k
         dtype = p.dtype
         K = self.max_returns
-        scanning, detected, n = self._counts(draws_k, k, steps, dtype)
+        scanning, detected, n = self._counts(detect, u_count, k, steps, dtype)
         z_clean = self.h(p)
         target = self.sensor.measure_step((noise, None), k, steps, p)  # NaN between report epochs
         center = z_clean if self.about_target else jnp.asarray(self.center, dtype)
@@ -166,6 +167,11 @@ class Cluttered:
 
     def whitened_half_width(self) -> np.ndarray:
         return np.asarray(self.half_width, float) / np.sqrt(np.diag(np.asarray(self.R, float)))
+
+
+def cluttered_of(sensor) -> Cluttered | None:
+    """The cluttered sensor among ``sensor``'s (a suite, a sensor or a view of them); None: none."""
+    return next((s for s in getattr(sensor, "sensors", ()) if isinstance(s, Cluttered)), None)
 
 
 def scan_information_scale(sensor) -> float:

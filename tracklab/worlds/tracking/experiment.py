@@ -24,6 +24,7 @@ from tracklab.pytree import named_leaves, with_leaves
 from tracklab.report.document import decimate, series_stride, write_tables
 from tracklab.report.figures import plot_figures
 from tracklab.sensors import SENSOR_SIGMAS, SensorSuite
+from tracklab.sensors.clutter import cluttered_of
 from tracklab.worlds import protocol
 from tracklab.worlds.tracking import outcome, scan
 from tracklab.worlds.tracking.errors import LOSSES, unpack
@@ -288,7 +289,7 @@ def clutter_of(exp, res) -> dict:
     if res.loss is not None:
         doc["track_loss"] = {"distance": float(res.loss.distance), "steps": int(res.loss.steps)} | (
             {"existence": float(res.loss.existence)} if res.loss.existence is not None else {})
-    cluttered = next((s for s in exp.sensor.sensors if getattr(s, "max_returns", None)), None) if exp.sensor else None
+    cluttered = cluttered_of(exp.sensor)
     if cluttered is not None:
         doc["clutter"] = {"density": float(np.asarray(cluttered.density)), "volume": float(cluttered.volume()),
                           "false_alarms_per_scan": float(cluttered.mean_false_alarms()),

@@ -25,6 +25,7 @@ from tracklab.filters.core import Filter, Meas, Prior, trace_problem
 from tracklab.filters.fusion import view_of
 from tracklab.models import MODELS, cv, cv_index, interleaved
 from tracklab.pytree import like, traced_key
+from tracklab.sensors.clutter import cluttered_of
 from tracklab.worlds.tracking.errors import error_inputs
 
 
@@ -139,7 +140,8 @@ class FilterSpec:
 
 def scan_returns(sensor) -> int | None:
     """A cluttered sensor's scan capacity (its z is (returns, m)); None for a sensor without clutter."""
-    return next((s.max_returns for s in getattr(sensor, "sensors", ()) if getattr(s, "max_returns", None)), None)
+    c = cluttered_of(sensor)
+    return None if c is None else c.max_returns
 
 def program_key(flt: Filter, n: int, m: int, returns: int | None = None) -> str | None:
     """What a filter compiles to, as a digest (``pytree.traced_key``): its ``init``, ``step`` and

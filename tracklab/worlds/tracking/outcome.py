@@ -28,7 +28,7 @@ from tracklab.montecarlo.pcrlb import pcrlb64
 from tracklab.montecarlo.statistics import REPORT_WINDOW
 from tracklab.scenarios import Scenario
 from tracklab.sensors import SensorSuite
-from tracklab.sensors.clutter import scan_information_scale
+from tracklab.sensors.clutter import cluttered_of, scan_information_scale
 from tracklab.worlds.tracking.errors import TrackLoss, sample_names, unpack
 from tracklab.worlds.tracking.lanes import FilterSpec
 from tracklab.worlds.tracking.scan import (
@@ -90,7 +90,7 @@ def result(structure, params, sums, out: runner.Outcome, point: int | None = Non
     sums = unpack(runner.labelled(sums, structure.labels), scenario.dim)
     info = sums.pop("_info")
     overflow, lost_pairs = sums.pop("_overflow", None), sums.pop("_lost_pairs", None)
-    cluttered = next((s for s in params.sensor.sensors if getattr(s, "max_returns", None)), None)
+    cluttered = cluttered_of(params.sensor)
     if cluttered is not None:  # a scan's information, reduced by clutter and missed detections
         info = info * scan_information_scale(cluttered)
         overflow = {"scans": int(round(float(np.sum(overflow["scans"])))), "runs": int(round(float(overflow["runs"]))),
@@ -155,20 +155,15 @@ def monte_carlo(
     chunk = int(chunk or default_chunk(scenario, sensor, runs=runs))
     loss = None
     if track_loss is not None:
-        t = tuple(track_loss) if isinstance(track_loss, (list, tuple)) else ()
-        if len(t) != 2 or not numeric_ok(t[0]) or isinstance(t[1], bool) or not isinstance(t[1], (int, np.integer)) \
-                or t[1] < 1:
-            raise refuse("tracklab.monte_carlo", "track_loss", track_loss, "must be (distance > 0, steps >= 1)")
-        loss = TrackLoss(float(t[0]), int(t[1]))
+        where = "tracklab.monte_carlo"
+        if not isinstance(track_loss, (list, tuple)) or len(track_loss) != 2:
+            raise refuse(where, "track_loss", track_loss, "must be (distance > 0, steps >= 1)")
+        loss = TrackLoss(check_positive(where, "track_loss[0]", track_loss[0]),
+                         check_count(where, "track_loss[1]", track_loss[1]))
     structure = TrackingStructure(tuple(specs), windows_of(windows), chunk, loss)
     filter_params = list(params) if params is not None else [s.filter.params for s in specs]
     p = TrackingParams(scenario, sensor, np.asarray(P0_cv, float), 0.0, filter_params)
     return run(structure, p, runs, key, progress=progress, precision=precision)
-
-
-def numeric_ok(v) -> bool:
-    """A finite real number > 0."""
-    return not isinstance(v, bool) and isinstance(v, (int, float, np.integer, np.floating)) and np.isfinite(v) and v > 0
 
 
 def _check(scenario, specs, runs, key, P0_cv, chunk, params, precision, windows, progress):

@@ -40,6 +40,7 @@ from tracklab import random
 from tracklab.montecarlo import runner
 from tracklab.montecarlo.statistics import REPORT_WINDOW
 from tracklab.sensors import SensorSuite
+from tracklab.sensors.clutter import cluttered_of
 from tracklab.worlds.tracking.errors import (
     RunErrors,
     accumulated_lengths,
@@ -141,7 +142,7 @@ def _chunk(structure: TrackingStructure):
                                  axis=1)  # (steps, M): which components each sensor reports at each step
         report_masks = np.stack([s.report_mask(T) for s in sensor.sensors], axis=1)  # (steps, sensors)
         detect_all = not sensor.misses
-        cluttered = next((s for s in sensor.sensors if getattr(s, "max_returns", None)), None)
+        cluttered = cluttered_of(sensor)
         with_bound = scenario.gaussian  # no PCRLB, no information to gather
         stand_in = _stand_in(sensor)
         views = [f.view_for(stand_in) for f in structure.filters]
@@ -224,14 +225,13 @@ def _chunk(structure: TrackingStructure):
             per_run = jax.vmap(lambda a: errors_of(a, dtype), in_axes=(err_axes[g[0]],), out_axes=-1)
             return jax.vmap(per_run)(stacked)
 
-        def group_stats(g, pending, w_k, bad_any, per_run_acc, loss, started):  # w_k: the step before's windows
+        def group_stats(g, pending, w_k, bad_any, per_run_acc, loss):  # w_k: the step before's windows
             r, first = pending
             runmax, acc = per_run_acc
             bad_any = bad_any | r.bad
-            # the track-loss test on the step before's errors (none before the first step): a run
-            # leaves the step's sums from the step its track is declared lost
-            beyond, lost = jax.vmap(lambda e, x, b, l: track_loss(structure.loss, e, x, b, l))(r.e, r.existence, *loss)
-            loss = jax.tree_util.tree_map(lambda new, old: jnp.where(started, new, old), (beyond, lost), loss)
+            # the track-loss test on the step before's errors (before the first step: zero errors, no
+            # existence, nothing beyond): a run leaves the step's sums from the step its loss is declared
+            loss = jax.vmap(lambda e, x, b, l: track_loss(structure.loss, e, x, b, l))(r.e, r.existence, *loss)
             ok = live & ~pick(exclude, g) & ~bad_any & ~loss[1]
             sums, maxima, runmax = jax.vmap(lambda r, ok, m, l: lane_sums(r, ok, m, w_k, dtype, live & l))(
                 r, ok, runmax, loss[1])
@@ -250,7 +250,7 @@ def _chunk(structure: TrackingStructure):
                     meas_k, k, T, truth_k[..., 0::2])
             out = {"_example": {"truth": truth_k[0] if truth_batched else truth_k, "z": z_k[0]}}
             if cluttered is not None:  # the scans that passed their capacity
-                over_k = jax.vmap(lambda d, c: cluttered.overflowed(((None, d), c, None, None), k, T, dtype))(*over_k)
+                over_k = jax.vmap(cluttered.overflowed, in_axes=(0, 0, None, None, None))(*over_k, k, T, dtype)
                 out["_overflowed_scans"] = jnp.sum((live & over_k).astype(dtype))
                 overflowed = overflowed | over_k
             if with_bound:  # expected measurement information at the true positions, for the PCRLB
@@ -269,7 +269,7 @@ def _chunk(structure: TrackingStructure):
                 # variable is computed once, where XLA would otherwise recompute the filter's
                 # arithmetic inside every reduction that reads it
                 (sums, maxima, first), bad_any, per_run_acc, loss = group_stats(g, pending, w_prev, bad_any,
-                                                                                per_run_acc, loss, k > 0)
+                                                                                per_run_acc, loss)
                 for j, i in enumerate(g):
                     out[runner.lane_key(i)] = (sums[j], maxima[j], first[j])
                 new_states, outs = [], []
