@@ -225,7 +225,8 @@ def _rmse(ctx):
                 band(ax, t, v, arr(s[f"rmse_{q}_hw"]) if f"rmse_{q}_hw" in s else None, st[l],
                       _label(l, filters[l], (("rmse_pos", pu), ("rmse_vel", vu))) if r == 0 else None)
             if bound in bounds:
-                ax.plot(t, arr(bounds[bound]), "k--", lw=0.9, label="PCRLB" if r == 0 else None)
+                name = "PCRLB in clutter (IRF)" if doc.get("clutter") else "PCRLB"
+                ax.plot(t, arr(bounds[bound]), "k--", lw=0.9, label=name if r == 0 else None)
             plain_log(ax)
             ax.set_ylabel(f"RMSE {'position' if q == 'pos' else 'velocity'} ({unit})")
             ax.grid(True, which="both", alpha=0.3)
@@ -233,9 +234,11 @@ def _rmse(ctx):
                 notes += coinciding(curves, ctx["w"])
                 ax.set_title("filters far from the others (own scale)" if c == 1 else ctx["title"], fontsize=9)
         axs[-1, c].set_xlabel("time (s)")
+    lost = ("curves over the runs not yet lost at each step (tracks drifting towards loss included), "
+            "in brackets over the runs never lost; IRF: the information reduction factor") if doc.get("track_loss") else ""
     legend(fig, axs, "; ".join(filter(None, [coincide_note(notes), f"bands: {percent(doc.get('level', 0.95))} "
                                               "confidence of each per-step RMSE; in brackets the time-averaged "
-                                              "position and velocity RMSE"])))
+                                              "position and velocity RMSE", lost])))
     fig.savefig(ctx["folder"] / "rmse.png", dpi=110)
     ctx["plt"].close(fig)
 
