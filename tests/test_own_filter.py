@@ -199,14 +199,16 @@ print(json.dumps({"before": before, "after": after, "devices": devices, "mode": 
 
 def test_configure_sets_the_cpu_devices_and_keeps_given_flags():
     """A flag the user's XLA_FLAGS name is kept; one ``configure`` added gives way to a world's own
-    compiler option (the airborne world's fusion emitters), one the user named does not."""
+    compiler option (the airborne world's fusion emitters), one the user named does not, and one
+    this XLA does not have is left out (not an error at compile time)."""
     code = """
 import json, os
 import tracklab
 tracklab.configure()
 import jax
 from tracklab.montecarlo import runner
-world = runner.World(None, None, 1, 1, (("xla_cpu_use_fusion_emitters", True), ("xla_force_host_platform_device_count", 7)))
+world = runner.World(None, None, 1, 1, (("xla_cpu_use_fusion_emitters", True), ("xla_force_host_platform_device_count", 7),
+                                        ("xla_cpu_no_such_option", "")))
 print(json.dumps([os.environ["XLA_FLAGS"], jax.device_count(), jax.config.jax_enable_x64,
                   runner.world_compiler_options(world)]))
 """

@@ -36,6 +36,7 @@ casts the parameters to it. Only arrays built outside it follow JAX's global mod
 
 from __future__ import annotations
 
+import functools
 import os
 
 
@@ -67,6 +68,19 @@ def _not_named(options: dict, flags: str) -> dict:
 def not_in_xla_flags(options: dict) -> dict:
     """The XLA options of ``options`` that the user's XLA_FLAGS do not name: a flag the user set is theirs."""
     return _not_named(options, _user_flags())
+
+
+@functools.lru_cache(maxsize=32)
+def xla_knows(name: str, value) -> bool:
+    """Whether this XLA takes the compile option ``name`` (options come and go between releases):
+    a trivial program compiled with it, once per process."""
+    import jax
+
+    try:
+        jax.jit(lambda: 0).lower().compile(compiler_options={name: value})
+    except Exception:  # noqa: BLE001 - XLA's error for an option it does not have
+        return False
+    return True
 
 
 def configure(*, cpu_devices: int | None = None, eigen_threads: bool = False, fusion_emitters: bool = False,

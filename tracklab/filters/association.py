@@ -155,12 +155,16 @@ def associate(base: Filter, rule: str, split, m: int, *, wrap_state=False) -> Fi
         gated = returns & (d2 <= ap["gate"])
         return ap, pred, out0, states, outs, d2, logdet, gated, scanned, shared, one, Z
 
-    def weights(ap, d2, logdet, gated):
-        """Log-weights (K + 1,): the prediction's, then each hypothesis' (−inf where not validated)."""
+    def weights(ap, d2, logdet, gated, shared_S):
+        """Log-weights (K + 1,) — the prediction's, then each hypothesis' (−inf where not validated) —
+        and a bound on them all: the prediction's or that of a return with d² = 0 (with one S for
+        every return no reduction over them; a validated return's weight is within e^(−γ/2) of it,
+        so none underflows)."""
         pd, lam = ap["p_detect"], ap["clutter_density"]
         log_w0 = jnp.log(lam) + jnp.log1p(-pd * gate_probability(ap["gate"], m))
-        log_w = jnp.where(gated, jnp.log(pd) - 0.5 * (d2 + logdet + m * math.log(2.0 * math.pi)), -jnp.inf)
-        return jnp.concatenate([log_w0[None], log_w])
+        log_peak = jnp.log(pd) - 0.5 * (logdet + m * math.log(2.0 * math.pi))
+        log_w = jnp.where(gated, log_peak - 0.5 * d2, -jnp.inf)
+        return jnp.concatenate([log_w0[None], log_w]), jnp.maximum(log_w0, log_peak[0] if shared_S else jnp.max(log_peak))
 
     def step(params, state, meas):
         inner = state[0] if wrap_state else state
@@ -179,8 +183,7 @@ def associate(base: Filter, rule: str, split, m: int, *, wrap_state=False) -> Fi
                        jnp.where(any_valid, oc.nu, 0.0), jnp.where(any_valid, oc.S, eye), any_valid,
                        jnp.where(any_valid, oc.dof, 0), validated)
             return new, out
-        lw = weights(ap, d2, logdet, gated)
-        top = jnp.max(lw)
+        lw, top = weights(ap, d2, logdet, gated, shared[0])
         top = jnp.where(jnp.isfinite(top), top, 0.0)
         e = jnp.exp(lw - top)
         total = jnp.sum(e)

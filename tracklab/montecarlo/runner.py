@@ -55,7 +55,7 @@ import numpy as np
 from tracklab.checks import check_key
 from tracklab.montecarlo import programs
 from tracklab.montecarlo.samples import RunSamples
-from tracklab.runtime import not_in_xla_flags
+from tracklab.runtime import not_in_xla_flags, xla_knows
 
 
 class Sums(NamedTuple):
@@ -110,8 +110,10 @@ class World(NamedTuple):
 
 
 def world_compiler_options(world: World) -> dict | None:
-    """The XLA options ``world``'s programs compile with (None: XLA's, as XLA_FLAGS set them)."""
-    return not_in_xla_flags(dict(world.compiler_options)) or None
+    """The XLA options ``world``'s programs compile with (None: XLA's, as XLA_FLAGS set them);
+    an option this XLA does not have is left out."""
+    options = not_in_xla_flags(dict(world.compiler_options))
+    return {k: v for k, v in options.items() if xla_knows(k, v)} or None
 
 
 @dataclass

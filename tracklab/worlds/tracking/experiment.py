@@ -126,7 +126,8 @@ class Experiment(protocol.Experiment):
         run count itself, nor any number."""
         lanes = tuple(self.lane(fc) for fc in self.filters)
         chunk = int(chunk or self.chunk or scan.default_chunk(self.scenario, self.sensor, runs=runs))
-        return scan.TrackingStructure(lanes, scan.windows_of(self.pred_windows), chunk, self.track_loss)
+        return scan.TrackingStructure(lanes, scan.windows_of(self.pred_windows), chunk, self.track_loss,
+                                      cluttered_of(self.sensor) is not None)
 
     def params(self):
         """Every number of the experiment, as the compiled program's argument."""

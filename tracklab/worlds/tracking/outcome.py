@@ -160,7 +160,7 @@ def monte_carlo(
             raise refuse(where, "track_loss", track_loss, "must be (distance > 0, steps >= 1)")
         loss = TrackLoss(check_positive(where, "track_loss[0]", track_loss[0]),
                          check_count(where, "track_loss[1]", track_loss[1]))
-    structure = TrackingStructure(tuple(specs), windows_of(windows), chunk, loss)
+    structure = TrackingStructure(tuple(specs), windows_of(windows), chunk, loss, cluttered_of(sensor) is not None)
     filter_params = list(params) if params is not None else [s.filter.params for s in specs]
     p = TrackingParams(scenario, sensor, np.asarray(P0_cv, float), 0.0, filter_params)
     return run(structure, p, runs, key, progress=progress, precision=precision)

@@ -62,6 +62,7 @@ class TrackingStructure:
     windows: tuple = ()  # (name, (steps,) bools): where each run's largest prediction error is taken
     chunk: int = 1000  # runs per chunk
     loss: Any = None  # the track-loss test (errors.TrackLoss), None: none
+    scans: bool = False  # the sensor's scans hold clutter (sensors.Cluttered)
 
     @property
     def labels(self) -> list[str]:
@@ -342,7 +343,16 @@ def _chunk(structure: TrackingStructure):
 @functools.lru_cache(maxsize=64)
 def world(structure: TrackingStructure) -> runner.World:
     """The tracking world of a structure (one per structure: its compiled programs are shared)."""
-    return runner.World(structure, _chunk(structure), len(structure.filters), structure.chunk)
+    return runner.World(structure, _chunk(structure), len(structure.filters), structure.chunk,
+                        compiler_options(structure))
+
+
+def compiler_options(structure: TrackingStructure) -> tuple:
+    """With scans of clutter, XLA's YNNPACK fusions off: it hands the association's sums over the
+    returns (K of them per run) to a library kernel per run and step, which runs them several times
+    slower than XLA's own loop. A PDAF-EKF on 32 returns: 0.85 against 1.5 million runs·steps/s
+    (``benchmarks/clutter.md``); clean measurements compile no such fusion of note."""
+    return (("xla_cpu_experimental_ynn_fusion_type", ""),) if structure.scans else ()
 
 def default_chunk(scenario, sensor, budget=2**28, runs=None) -> int:
     """Runs per chunk when the experiment does not say: 1 000 per device (with several filters
