@@ -11,7 +11,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from tracklab.filters import Meas, Prior, ipda, kf, nearest_neighbour, pdaf
+from tracklab import run_filter
+from tracklab.filters import ipda, kf, nearest_neighbour, pdaf, strongest_neighbour
 from tracklab.filters.association import chi2_gate, gate_probability
 from tracklab.sensors import Cluttered, Sensor
 from tracklab.sensors.clutter import information_reduction_factor, poisson_count
@@ -74,11 +75,27 @@ def test_scan_false_alarm_count_and_positions_follow_their_laws():
     near = np.all(np.abs(scans) < 0.05, axis=-1)  # (steps, rows)
     rows = np.argmax(near, axis=1)[near.any(axis=1)]
     assert len(np.unique(rows)) == 16 and np.max(np.bincount(rows)) < 0.1 * len(rows)
+    # with an amplitude model (SNR 0 dB: 1 + SNR = 2) the rows are in order of amplitude: the
+    # target's row is the number of false alarms stronger than it, P(s = k | n) = C(n, k) ∫ pᵏ
+    # (1 − p)ⁿ⁻ᵏ du with p = u², i.e. C(n, k) B(k + 1/2, n − k + 1) / 2; over n ~ Poisson(λV)
+    ranked = Cluttered(sensor.sensor, sensor.density, half, None, 16, 0.0)
+    scans = _scans(ranked, steps, 2, truth)
+    near = np.all(np.abs(scans) < 0.05, axis=-1)
+    s = np.argmax(near, axis=1)
+    beta = lambda a, b: math.exp(math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b))  # noqa: E731
+    pois = [math.exp(-lam_v) * lam_v**n / math.factorial(n) for n in range(16)]
+    p = np.array([sum(pois[n] * math.comb(n, k) * beta(k + 0.5, n - k + 1) / 2 for n in range(k, 16))
+                  for k in range(5)])
+    p = np.append(p, 1 - p.sum())
+    counts = np.append(np.bincount(s, minlength=5)[:5], np.sum(s >= 5)).astype(float)
+    chi2 = float(np.sum((counts - steps * p) ** 2 / (steps * p)))
+    assert chi2 < 20.5, (chi2, counts, steps * p)  # χ²₅ at 0.999
 
 
 def _numpy_pdaf(zs, x0, P0, gate, pd, lam, *, rule="pdaf", p_survive=0.98, psi0=0.9):
-    """The PDAF (Bar-Shalom, Daum & Huang 2009, parametric clutter), the nearest neighbour and the
-    IPDA's existence (Mušicki et al. 1994) for a linear model, from their equations."""
+    """The PDAF (Bar-Shalom, Daum & Huang 2009, parametric clutter), the nearest and strongest
+    neighbours and the IPDA's existence (Mušicki et al. 1994) for a linear model, from their
+    equations."""
     x, P, psi = x0.copy(), P0.copy(), psi0
     m = H.shape[0]
     pg = float(gate_probability(gate, m))
@@ -93,9 +110,9 @@ def _numpy_pdaf(zs, x0, P0, gate, pd, lam, *, rule="pdaf", p_survive=0.98, psi0=
         nus = nus[d2 <= gate]
         d2 = d2[d2 <= gate]
         gated.append(len(nus))
-        if rule == "nn":
+        if rule in ("nn", "snf"):  # the least d², or the first validated row (the strongest)
             if len(nus):
-                nu = nus[np.argmin(d2)]
+                nu = nus[np.argmin(d2)] if rule == "nn" else nus[0]
                 x, P = xp + K @ nu, Pp - K @ S @ K.T
             else:
                 x, P = xp, Pp
@@ -116,24 +133,18 @@ def _numpy_pdaf(zs, x0, P0, gate, pd, lam, *, rule="pdaf", p_survive=0.98, psi0=
     return np.array(xs), np.array(Ps), np.array(psis), np.array(gated)
 
 
-def _run(flt, zs, x0, P0):
-    with jax.enable_x64(True):
-        step = jax.jit(flt.step)
-        state = flt.init(flt.params, Prior(jnp.asarray(x0), jnp.asarray(P0)))
-        xs, Ps, aux = [], [], []
-        for k, Z in enumerate(zs):
-            state, out = step(flt.params, state, Meas(jnp.asarray(Z), jnp.asarray((k + 1) * DT), jnp.asarray(True)))
-            xs.append(np.asarray(out.x))
-            Ps.append(np.asarray(out.P))
-            aux.append(None if out.aux is None else float(out.aux["existence"]))
-    return np.array(xs), np.array(Ps), aux
+def _run(flt, zs, x0, P0, scans=True):
+    """``tracklab.run_filter`` over the scans (or measurements): (x, P, existence or None) per step."""
+    r = run_filter(flt, zs, x0=x0, P0=P0, dt=DT, scans=scans)
+    return np.asarray(r.x), np.asarray(r.P), None if r.aux is None else np.asarray(r.aux["existence"])
 
 
-@pytest.mark.parametrize("rule", ["pdaf", "nn", "ipda"])
+@pytest.mark.parametrize("rule", ["pdaf", "nn", "snf", "ipda"])
 def test_association_against_numpy_reference_on_the_same_returns(rule):
     steps = 40
     lam = 4.0 / (4 * 80.0 * 80.0)
-    sensor = Cluttered(Sensor("cartesian", 2, (5.0, 5.0), 0.8, dt=DT), lam, (80.0, 80.0), None, 16)
+    # the returns in order of amplitude (SNR 3 dB: the target is often, not always, the strongest)
+    sensor = Cluttered(Sensor("cartesian", 2, (5.0, 5.0), 0.8, dt=DT), lam, (80.0, 80.0), None, 16, 3.0)
     zs = _scans(sensor, steps, 7, _truth(steps))
     x0, P0 = np.array([0.0, 10.0, 0.0, 5.0]), np.diag([25.0, 4.0, 25.0, 4.0])
     gate = chi2_gate(0.99, 2)
@@ -141,6 +152,7 @@ def test_association_against_numpy_reference_on_the_same_returns(rule):
         base = kf(F, H, Q, R)
         flt = {"pdaf": lambda: pdaf(base, 2, clutter_density=lam, p_detect=0.8, gate=gate),
                "nn": lambda: nearest_neighbour(base, 2, gate=gate),
+               "snf": lambda: strongest_neighbour(base, 2, gate=gate),
                "ipda": lambda: ipda(base, 2, clutter_density=lam, p_detect=0.8, gate=gate)}[rule]()
     xs, Ps, psi = _run(flt, zs, x0, P0)
     rx, rP, rpsi, gated = _numpy_pdaf(zs, x0, P0, gate, 0.8, lam, rule=rule)
@@ -148,8 +160,11 @@ def test_association_against_numpy_reference_on_the_same_returns(rule):
     np.testing.assert_allclose(Ps, rP, rtol=1e-8, atol=1e-7)
     if rule == "ipda":
         np.testing.assert_allclose(psi, rpsi, rtol=1e-9)
-    # the association mattered: steps with several returns in the gate, and with none
+    # the association mattered: steps with several returns in the gate, and with none; the
+    # strongest and the nearest neighbour are different trackers on these scans
     assert np.max(gated) >= 2 and np.min(gated) == 0, gated
+    if rule == "snf":
+        assert np.max(np.abs(rx - _numpy_pdaf(zs, x0, P0, gate, 0.8, lam, rule="nn")[0])) > 1.0
 
 
 def test_pdaf_without_clutter_and_with_certain_detection_is_its_base_filter():
@@ -160,8 +175,8 @@ def test_pdaf_without_clutter_and_with_certain_detection_is_its_base_filter():
         base = kf(F, H, Q, R)
         flt = pdaf(base, 2, clutter_density=1e-300, p_detect=1.0, gate=1e4)
     x0, P0 = np.array([0.0, 10.0, 0.0, 5.0]), np.diag([25.0, 4.0, 25.0, 4.0])
-    xs, Ps, _ = _run(flt, zs, x0, P0)
-    bx, bP, _ = _run(base, zs, x0, P0)
+    xs, Ps, _ = _run(flt, zs[:, None, :], x0, P0)  # scans of one return
+    bx, bP, _ = _run(base, zs, x0, P0, scans=False)
     np.testing.assert_allclose(xs, bx, rtol=1e-12, atol=1e-9)
     np.testing.assert_allclose(Ps, bP, rtol=1e-12, atol=1e-9)
 
@@ -277,6 +292,8 @@ def test_clutter_statistics_do_not_depend_on_the_chunk_and_match_the_modified_ri
     (("max_returns = 16", "max_returns = 16\nclutter_coverage = [[0.0, 1.0], [0.0, 1.0]]"), "sensor.clutter_window"),
     (("clutter_window = [120.0, 120.0]", "clutter_window = [120.0]"), "sensor.clutter_window"),
     (('kind = "pdaf"\nbase = "kf"', 'kind = "pdaf"\nbase = "stf"'), "filter[2].base"),
+    (('kind = "nn"\nbase = "kf"', 'kind = "snf"\nbase = "kf"'), "filter[1].kind"),  # no amplitude: no strongest
+    (("max_returns = 16", "max_returns = 16\nsnr = 99.0"), "sensor.snr"),
 ])
 def test_a_bad_clutter_file_is_refused_in_one_line(tmp_path, change, field):
     from tracklab.config import load_experiment

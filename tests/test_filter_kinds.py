@@ -109,7 +109,8 @@ def _minimal(kind) -> str:
         world = ('[scenario]\nkind = "constant_velocity"\ninitial = [0.0, 10.0, 1000.0, -5.0]\naccel_sigma = 0.5\n\n'
                  '[sensor]\nkind = "cartesian"\nsigma = 10.0\n')
         if kind.scans:  # an association: a cluttered sensor and the track-loss test
-            world += 'clutter_density = 1e-4\nclutter_window = [100.0, 100.0]\n\n[track_loss]\ndistance = 50.0\n'
+            world += ('clutter_density = 1e-4\nclutter_window = [100.0, 100.0]\n' + ('snr = 10.0\n' if kind.name == "snf" else '')
+                      + '\n[track_loss]\ndistance = 50.0\n')  # the strongest neighbour: amplitudes
 
     else:
         world = '[scenario]\nkind = "crossing"\n\n[sensor]\nkind = "polar"\nsigma_r = 100.0\nsigma_angle = 0.003\n'

@@ -40,12 +40,15 @@ class FilterResult:
     layout: Any = None  # where position and velocity sit in x (the filter's; None: [x, ẋ, y, ẏ, …])
 
 
-def run_filter(flt: Filter, z, *, x0, P0, params=None, dt: float = 1.0, precision: str = "float64") -> FilterResult:
+def run_filter(flt: Filter, z, *, x0, P0, params=None, dt: float = 1.0, precision: str = "float64",
+               scans: bool = False) -> FilterResult:
     """Run a filter over a user's measurements.
 
     ``z`` is (T, m) or (N, T, m); a row of NaN is a missed detection
-    (predict-only). ``x0, P0`` is the prior one sample period before ``z[0]``, in the
-    filter's own state order (its ``layout``): (n,) and (n, n), or per recording (N, n) and
+    (predict-only). ``scans=True``: z is a sequence of scans, (T, K, m) or (N, T, K, m), each
+    scan's K rows its returns (unused rows NaN), for a filter of scans (``filters.pdaf``,
+    ``nearest_neighbour``, ``strongest_neighbour``, ``ipda``). ``x0, P0`` is the prior one
+    sample period before ``z[0]``, in the filter's own state order (its ``layout``): (n,) and (n, n), or per recording (N, n) and
     (N, n, n) with N that of ``z``; each step predicts, then updates with ``z[k]``. ``params``:
     the filter's parameters (None: ``flt.params``). ``dt``: the sample period. ``precision``:
     "float64" (whatever JAX's global 64-bit mode) or "float32"; the parameters and inputs are
@@ -66,14 +69,17 @@ def run_filter(flt: Filter, z, *, x0, P0, params=None, dt: float = 1.0, precisio
     precision = check_precision(where, precision)
     dt = check_positive(where, "dt", dt)
     z = check_measurements(where, "z", z)
-    if z.ndim not in (2, 3):
-        raise ValueError(f"{where}: z has shape {z.shape}: expected (T, m) or (N, T, m)")
+    lead = 1 if scans else 0  # a scan's axis of returns
+    if z.ndim - lead not in (2, 3):
+        raise ValueError(f"{where}: z has shape {z.shape}: expected "
+                         + ("(T, K, m) or (N, T, K, m) (scans)" if scans else "(T, m) or (N, T, m)"))
     xs, Ps = numeric(where, "x0", x0).shape, numeric(where, "P0", P0).shape
     n = xs[-1] if xs else 0
     if len(xs) not in (1, 2) or len(Ps) not in (2, 3) or Ps[-2:] != (n, n):
         raise ValueError(f"{where}: x0 {xs} and P0 {Ps}: expected (n,) or (N, n), and (n, n) "
                          f"or (N, n, n), in the filter's own state order")
-    runs = z.shape[0] if z.ndim == 3 else None
+    batched = z.ndim - lead == 3
+    runs = z.shape[0] if batched else None
     for name, shape in (("x0", xs[:-1]), ("P0", Ps[:-2])):
         if shape and shape[0] != runs:
             raise ValueError(f"{where}: {name} has shape {xs if name == 'x0' else Ps}, z {z.shape}: a prior per "
@@ -81,10 +87,11 @@ def run_filter(flt: Filter, z, *, x0, P0, params=None, dt: float = 1.0, precisio
     check_finite(where, "x0", x0)
     check_covariance(where, "P0", P0)
     m = z.shape[-1]
-    why = trace_problem(flt, n, m, params, precision, outputs=False)
+    returns = z.shape[-2] if scans else None
+    why = trace_problem(flt, n, m, params, precision, outputs=False, returns=returns)
     if why:
-        takes = measurement_sizes(flt, n, [k for k in range(1, max(MEASUREMENT_SIZES, m) + 1) if k != m], params,
-                                  precision, outputs=False)
+        takes = [] if scans else measurement_sizes(flt, n, [k for k in range(1, max(MEASUREMENT_SIZES, m) + 1)
+                                                            if k != m], params, precision, outputs=False)
         if takes:
             raise refuse(where, "z", shape_of(z), f"has m = {m} components per measurement, the filter takes "
                          f"{' or '.join(map(str, takes))} (z is (T, m) or (N, T, m))")
@@ -93,7 +100,7 @@ def run_filter(flt: Filter, z, *, x0, P0, params=None, dt: float = 1.0, precisio
         dtype = jnp.float64 if precision == "float64" else jnp.float32
         params = in_precision(flt.params if params is None else params, precision)
         z, x0, P0 = (jnp.asarray(a, dtype) for a in (z, x0, P0))
-        out = _run_filter_jit(flt.init, flt.step, params, z, x0, P0, dt, z.ndim == 3)
+        out = _run_filter_jit(flt.init, flt.step, params, z, x0, P0, dt, batched)
     return FilterResult(*out, layout=flt.layout)
 
 

@@ -103,8 +103,11 @@ def _cluttered(c: Cluttered, sensor, field) -> Cluttered:
         raise ConfigError(WHERE, f"{field}.center", c.center, f"must be None (about the target) or {m} finite numbers")
     if isinstance(c.max_returns, bool) or not isinstance(c.max_returns, (int, np.integer)) or not 1 <= c.max_returns <= 1024:
         raise ConfigError(WHERE, f"{field}.max_returns", c.max_returns, "must be an integer in [1, 1024]")
+    if c.snr is not None and (not is_real(c.snr) or not -30.0 <= c.snr <= 60.0):
+        raise ConfigError(WHERE, f"{field}.snr", c.snr, "must be None or the target's mean SNR in dB, in [-30, 60]")
     return Cluttered(dataclasses.replace(sensor, misses=True), float(c.density), tuple(half.tolist()),
-                     None if c.center is None else tuple(float(v) for v in c.center), int(c.max_returns))
+                     None if c.center is None else tuple(float(v) for v in c.center), int(c.max_returns),
+                     None if c.snr is None else float(c.snr))
 
 
 def _describe(obj):

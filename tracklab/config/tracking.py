@@ -125,7 +125,7 @@ def _build_sensors(f, parsed, dim, dt, steps, folders=()):
     return SensorSuite(tuple(sensors))
 
 
-CLUTTER_FIELDS = ("clutter_density", "max_returns", "clutter_window", "clutter_coverage")
+CLUTTER_FIELDS = ("clutter_density", "max_returns", "clutter_window", "clutter_coverage", "snr")
 
 
 def _clutter(f, where, sn, sensor):
@@ -133,19 +133,21 @@ def _clutter(f, where, sn, sensor):
     ``clutter_density`` (λ ≥ 0, per unit volume of the measurement space in the sensor's units),
     ``max_returns`` (the scan's capacity, default 16) and the region, either ``clutter_window``
     (half-widths about the target's measurement, one per component) or ``clutter_coverage``
-    ([[lo, hi], …] per component: a fixed box)."""
+    ([[lo, hi], …] per component: a fixed box); ``snr``, the target's mean SNR in dB, puts the
+    returns in order of amplitude (a strongest neighbour needs it)."""
     if not any(sn.has(k) for k in CLUTTER_FIELDS):
         return sensor
     sensor = dataclasses.replace(sensor, misses=True)  # detections drawn at any p_detect: one program for all
     m = sensor.m
     density = sn.number("clutter_density", required=True, nonneg=True)
     capacity = sn.integer("max_returns", 16, lo=1, hi=1024)
+    snr = sn.number("snr", None, lo=-30.0, hi=60.0)
     if sn.has("clutter_window") == sn.has("clutter_coverage"):
         raise ConfigError(f, f"{where}.clutter_window", sn.get("clutter_window"), "give the clutter's region: either "
                           f"clutter_window = [{m} half-widths about the target] or clutter_coverage = [[lo, hi] x {m}]")
     if sn.has("clutter_window"):
         half = sigma_list(f, f"{where}.clutter_window", sn.get("clutter_window"), m)
-        return Cluttered(sensor, density, half, None, capacity)
+        return Cluttered(sensor, density, half, None, capacity, snr)
     box = sn.get("clutter_coverage")
     sn.used.add("clutter_coverage")
     if (not isinstance(box, list) or len(box) != m
@@ -155,7 +157,7 @@ def _clutter(f, where, sn, sensor):
         raise ConfigError(f, f"{where}.clutter_coverage", box, f"must be [[lo, hi] x {m}] with lo < hi, one per "
                           f"component ({', '.join(sensor.names)})")
     lo, hi = np.asarray(box, float).T
-    return Cluttered(sensor, density, tuple((hi - lo) / 2.0), tuple((hi + lo) / 2.0), capacity)
+    return Cluttered(sensor, density, tuple((hi - lo) / 2.0), tuple((hi + lo) / 2.0), capacity, snr)
 
 
 def _timing(f, where, sn, dt):

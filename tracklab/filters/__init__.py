@@ -27,7 +27,7 @@ from tracklab.filters.blocks import (
     wrap_angle,
 )
 from tracklab.filters.core import Filter, Meas, Out, Prior, masked_meas, measuring
-from tracklab.filters.association import ipda, nearest_neighbour, pdaf
+from tracklab.filters.association import ipda, nearest_neighbour, pdaf, strongest_neighbour
 from tracklab.filters.kalman import (
     ekf,
     kf,
@@ -62,6 +62,6 @@ __all__ = [
     "Filter", "FilterKind", "Gaussian", "KINDS", "Meas", "Out", "Param", "Prior", "Update", "build", "ekf", "ekf_predict",
     "ekf_update", "growing_memory_alpha_beta", "growing_memory_alpha_beta_gamma", "imm_params", "innovation",
     "innovation_update", "ipda", "joseph_covariance", "kalata_alpha_beta", "kalata_alpha_beta_gamma", "kalman_filter", "kf",
-    "masked_meas", "model_alpha_beta", "model_error_space", "model_imm", "model_stf", "model_ukf", "nearest_neighbour", "noise_params", "pdaf", "predict",
+    "masked_meas", "model_alpha_beta", "model_error_space", "model_imm", "model_stf", "model_ukf", "nearest_neighbour", "noise_params", "pdaf", "predict", "strongest_neighbour",
     "strong_tracking", "tracking_index", "update", "wrap_angle",
 ]

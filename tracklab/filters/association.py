@@ -2,7 +2,7 @@
 
 A cluttered sensor (``tracklab.sensors.Cluttered``) gives a *scan* per step: z of shape
 (capacity, m), one row per return, NaN rows unused. ``nearest_neighbour(base, …)``,
-``pdaf(base, …)`` and ``ipda(base, …)`` take any filter ``base`` whose state is a Gaussian
+``strongest_neighbour(base, …)``, ``pdaf(base, …)`` and ``ipda(base, …)`` take any filter ``base`` whose state is a Gaussian
 (``blocks.Gaussian``, or any NamedTuple with x (n,) and P (n, n): every filter written with
 ``blocks.kalman_filter``, the built-in KF, EKF, CMKF, UKF, sequential EKF and polar KF) and
 return a filter of scans, in the spirit of optax's ``chain``:
@@ -14,6 +14,9 @@ return a filter of scans, in the spirit of optax's ``chain``:
 3. the rule:
 
    * **nearest neighbour**: the validated hypothesis of least d² (none: the prediction);
+   * **strongest neighbour**: the validated return of greatest amplitude — the first validated
+     row, for a sensor whose scans hold their returns in order of amplitude (a cluttered sensor
+     with ``snr``; ``sensors.clutter``) — (none: the prediction);
    * **PDAF** (Bar-Shalom & Tse, Automatica 1975; the parametric form of Bar-Shalom, Daum &
      Huang, "The probabilistic data association filter", IEEE Control Systems Magazine 29(6),
      2009): weights β₀ ∝ λ(1 − P_D P_G), βᵢ ∝ P_D N(νᵢ; 0, Sᵢ) over the validated returns,
@@ -28,8 +31,8 @@ return a filter of scans, in the spirit of optax's ``chain``:
      ψ = (1 − δ)ψ⁻ / (1 − δψ⁻), δ = P_D P_G − Σᵢ P_D N(νᵢ; 0, Sᵢ)/λ (in ``Out.aux["existence"]``).
 
 PDAF and IPDA are smooth in every number (gate, P_D, λ, the base's q and r), so ``tracklab
-tune`` tunes them through the simulation. The nearest neighbour's choice is a hard one: its
-numbers are not tuned (tune its PDAF relaxation).
+tune`` tunes them through the simulation. The nearest and strongest neighbours' choice is a hard
+one: their numbers are not tuned (tune their PDAF relaxation).
 
 A scan filter's ``Out.validated`` is the number of validated returns (NaN at a step with no
 scan); its ν and S are the combined innovation (the chosen one for the nearest neighbour) and
@@ -134,7 +137,7 @@ def _out(out0: Out, x, P, nu, S, valid, dof, validated, aux=None) -> Out:
 
 
 def associate(base: Filter, rule: str, split, m: int, *, wrap_state=False) -> Filter:
-    """A filter of scans from ``base`` by ``rule`` ("nn", "pdaf", "ipda"); ``split(params) ->
+    """A filter of scans from ``base`` by ``rule`` ("nn", "snf", "pdaf", "ipda"); ``split(params) ->
     (base params, association params {gate, p_detect, clutter_density[, p_survive, existence0]})``."""
 
     def hypotheses(params, state, meas):
@@ -174,8 +177,8 @@ def associate(base: Filter, rule: str, split, m: int, *, wrap_state=False) -> Fi
         any_valid = n_valid > 0
         validated = jnp.where(scanned, n_valid.astype(out0.x.dtype), jnp.nan)
         eye = jnp.eye(m, dtype=out0.x.dtype)
-        if rule == "nn":
-            i = jnp.argmin(jnp.where(gated, d2, jnp.inf))
+        if rule in HARD_RULES:  # one return chosen: the nearest, or the first (strongest) validated
+            i = jnp.argmin(jnp.where(gated, d2, jnp.inf)) if rule == "nn" else jnp.argmax(gated)
             chosen = jax.tree_util.tree_map(lambda a: a[i], states)
             oc = jax.tree_util.tree_map(lambda a: a[i], outs)
             new = select(any_valid, chosen, pred)
@@ -254,6 +257,15 @@ def nearest_neighbour(base: Filter, m: int, *, gate: float | None = None) -> Fil
     return flt._replace(params={"base": base.params, "gate": numbers["gate"]})
 
 
+def strongest_neighbour(base: Filter, m: int, *, gate: float | None = None) -> Filter:
+    """``base`` updated with the first validated return of its scan: the strongest, for scans whose
+    returns are in order of amplitude (``sensors.Cluttered`` with ``snr``); see the module's doc.
+    ``m``: the components of a return; ``gate`` γ (default: P_G = 0.99). params {"base", "gate"}."""
+    numbers = _numbers("tracklab.filters.strongest_neighbour", base, gate, 1.0, 1.0, m)
+    flt = associate(base, "snf", _split_nested, m)
+    return flt._replace(params={"base": base.params, "gate": numbers["gate"]})
+
+
 def pdaf(base: Filter, m: int, *, clutter_density: float, p_detect: float = 1.0, gate: float | None = None) -> Filter:
     """The PDAF of ``base`` (see the module's doc): ``m`` the components of a return,
     ``clutter_density`` λ (per unit volume of the measurement space), ``p_detect`` P_D, ``gate``
@@ -287,6 +299,7 @@ P_SURVIVE = Param("probability that the target goes on existing from one step to
 EXISTENCE0 = Param("the target's existence probability before the first scan", bounded(0.0, 1.0), "", 0.9, tune=True)
 
 
+HARD_RULES = ("nn", "snf")  # rules that choose one return: no gradient, their numbers not tuned
 ASSOCIATION_FIELDS = ("base", "gate", "p_detect", "clutter_density", "p_survive", "existence0")
 
 
@@ -296,8 +309,11 @@ def association_numbers(e, rule: str) -> dict:
     sensor's), for the IPDA p_S and the prior existence; each checked in one line."""
     m = e.meas.m
     clutter = cluttered_of(e.meas)
+    if rule == "snf" and (clutter is None or clutter.snr is None):
+        raise e.error("kind", "snf", "needs the returns in order of amplitude: give the [sensor] the target's mean SNR, "
+                      "snr = … (dB)")
     out = {"gate": e.number("gate", chi2_gate(0.99, m), positive=True)}
-    if rule != "nn":
+    if rule not in HARD_RULES:
         pd = e.number("p_detect", float(np.asarray(e.meas.sensors[0].p_detect)))
         if not 0.0 < pd <= 1.0:
             raise e.error("p_detect", pd, "must be a probability in (0, 1]")
@@ -371,6 +387,8 @@ def association_kinds(bases: Mapping) -> tuple:
         FilterKind("nn", "nearest neighbour: the validated return of least d² (base = ekf, kf, …)", ANY_SENSOR,
                    common | {"gate": GATE}, reader("nn"),
                    builder("nn"), scans=True),
+        FilterKind("snf", "strongest neighbour: the validated return of greatest amplitude (needs the sensor's snr; "
+                   "base = ekf, kf, …)", ANY_SENSOR, common | {"gate": GATE}, reader("snf"), builder("snf"), scans=True),
         FilterKind("pdaf", "probabilistic data association filter (base = ekf, kf, …)", ANY_SENSOR, common | pda,
                    reader("pdaf"), builder("pdaf"), scans=True),
         FilterKind("ipda", "integrated PDA: the PDAF with the target's existence probability (base = ekf, kf, …)",

@@ -22,11 +22,11 @@ from tracklab.filters.error_space import ERROR_SPACE
 from tracklab.filters.association import association_kinds
 
 # the Gaussian filters an association (nn, pdaf, ipda) may be built on
-NN, PDAF, IPDA = association_kinds({k.name: k for k in (KF, EKF, CMKF, SEQUENTIAL_EKF, POLAR_KF, UKF)})
+NN, SNF, PDAF, IPDA = association_kinds({k.name: k for k in (KF, EKF, CMKF, SEQUENTIAL_EKF, POLAR_KF, UKF)})
 
 
 KINDS: dict[str, FilterKind] = {k.name: k for k in (KF, EKF, CMKF, SEQUENTIAL_EKF, POLAR_KF, UKF, ALPHA_BETA,
-                                                    ALPHA_BETA_GAMMA, STF, IMM, DEKF, ERROR_SPACE, NN, PDAF,
+                                                    ALPHA_BETA_GAMMA, STF, IMM, DEKF, ERROR_SPACE, NN, SNF, PDAF,
                                                     IPDA)}
 
 

@@ -11,7 +11,15 @@
   (``center`` given: the sensor's coverage). Angle components are wrapped to (−π, π].
 
 A scan is a fixed-capacity array (``max_returns``, m) — the detection at a random row, the
-false alarms in the others, the unused rows NaN — so that every run and step has the same shapes. A scan whose returns
+false alarms in the others, the unused rows NaN — so that every run and step has the same shapes.
+With an amplitude model (``snr``: the target's mean signal-to-noise ratio in dB) the rows are in
+order of amplitude, strongest first, which is what a strongest-neighbour tracker reads: the target
+is a Swerling I return (power exponential with mean 1 + SNR), the false alarms are noise
+(exponential with mean 1), both above the detection threshold τ = −(1 + SNR) ln P_D that gives the
+sensor's ``p_detect``. Above τ both excesses are again exponential, so the number of false alarms
+stronger than the target is Binomial(n, u^(1 + SNR)) with u uniform (``stronger_alarms``); the
+false alarms' positions do not depend on their amplitudes, so their rows before and after the
+target's can stand in amplitude order as they are. A scan whose returns
 (detection and false alarms) pass the capacity is *overflowed*: its first ``max_returns``
 returns are kept (the detection among them), and ``overflowed`` tells the world, which counts
 and reports such scans. Between report epochs the scan is all NaN.
@@ -53,6 +61,25 @@ def poisson_count(u, mean, capacity: int):
     return jnp.sum(u > cdf).astype(jnp.int32)
 
 
+def stronger_alarms(u, v, n, snr_db, capacity: int):
+    """How many of ``n`` false alarms are stronger than the target (see the module's doc): the
+    inverse distribution function at the uniform ``v`` of Binomial(n, p), p = u^(1 + SNR) the
+    probability that noise above the threshold passes the target's amplitude (its excess over the
+    threshold −(1 + SNR) ln u, u uniform). n ≤ capacity + 1; the result is at most n."""
+    dtype = jnp.result_type(u)
+    snr = 10.0 ** (jnp.asarray(snr_db, dtype) / 10.0)
+    log_p = (1.0 + snr) * jnp.log(jnp.maximum(u, jnp.finfo(dtype).tiny))
+    log_q = jnp.log1p(-jnp.exp(log_p))
+    k = jnp.arange(capacity + 2, dtype=dtype)
+    nf = n.astype(dtype)
+    log_choose = (jax.scipy.special.gammaln(nf + 1.0) - jax.scipy.special.gammaln(k + 1.0)
+                  - jax.scipy.special.gammaln(jnp.maximum(nf - k, 0.0) + 1.0))
+    # 0·log 0 = 0 at the ends (p → 0 or 1)
+    terms = log_choose + jnp.where(k > 0, k * log_p, 0.0) + jnp.where(nf - k > 0, (nf - k) * log_q, 0.0)
+    cdf = jnp.cumsum(jnp.where(k <= nf, jnp.exp(terms), 0.0))
+    return jnp.minimum(jnp.sum(v > cdf), n).astype(jnp.int32)
+
+
 @jax.tree_util.register_dataclass
 @dataclass(frozen=True)
 class Cluttered:
@@ -64,6 +91,7 @@ class Cluttered:
     half_width: Any = ()  # (m,) half-widths of the clutter box, in the sensor's units
     center: Any = None  # (m,) a fixed box's centre; None: the target's noise-free measurement
     max_returns: int = static(16)  # the scan's capacity
+    snr: Any = None  # the target's mean SNR (dB): the returns in order of amplitude; None: in random order
 
     @property
     def about_target(self) -> bool:
@@ -110,8 +138,11 @@ class Cluttered:
         k_target, k_count, k_pos, k_order = jax.random.split(key, 4)
         noise = random.normal(k_target, (steps, self.m))
         detect = random.uniform(jax.random.fold_in(k_target, 1), (steps,))
+        order = random.uniform(k_order, (steps,))
+        if self.snr is not None:  # and one for the target's amplitude
+            order = (order, random.uniform(jax.random.fold_in(k_order, 1), (steps,)))
         return ((noise, detect), random.uniform(k_count, (steps,)),
-                random.uniform(k_pos, (steps, self.max_returns, self.m)), random.uniform(k_order, (steps,)))
+                random.uniform(k_pos, (steps, self.max_returns, self.m)), order)
 
     def _counts(self, detect, u_count, k, steps, dtype):
         """(scanning, detected, false alarms drawn (capacity + 1: more than the capacity)) at step k,
@@ -128,8 +159,8 @@ class Cluttered:
         return n + detected.astype(jnp.int32) > self.max_returns
 
     def measure_step(self, draws_k, k, steps, p):
-        """Step k's scan (capacity, m) of the target at ``p`` (dim,): the detection at a random row,
-        NaN rows unused."""
+        """Step k's scan (capacity, m) of the target at ``p`` (dim,): the detection at a random row
+        (with ``snr``: after the false alarms stronger than it), NaN rows unused."""
         (noise, detect), u_count, u_pos, u_order = draws_k
         dtype = p.dtype
         K = self.max_returns
@@ -143,7 +174,10 @@ class Cluttered:
         # the detection at a random row s, the false alarms in the rows before it and after it, in
         # order (elementwise selections: no gather under vmap)
         j = jnp.arange(K)
-        s = jnp.minimum(jnp.floor(u_order * K).astype(jnp.int32), K - 1)
+        if self.snr is None:
+            s = jnp.minimum(jnp.floor(u_order * K).astype(jnp.int32), K - 1)
+        else:
+            s = jnp.minimum(stronger_alarms(u_order[1].astype(dtype), u_order[0].astype(dtype), n, self.snr, K), K - 1)
         alarm = j - (detected & (j > s)).astype(jnp.int32)  # which false alarm row j holds
         after = jnp.concatenate([alarms[-1:], alarms[:-1]])  # alarm j - 1 in row j
         rows = jnp.where((detected & (j > s))[:, None], after, alarms)

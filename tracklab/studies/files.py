@@ -13,6 +13,7 @@ from tracklab.config import load_experiment
 from tracklab.config.paths import parse_grid
 from tracklab.config.writeback import tuned_text
 from tracklab.errors import ConfigError
+from tracklab.filters.association import HARD_RULES
 from tracklab.memory import check
 from tracklab.output import (
     atomic_folder,
@@ -44,10 +45,10 @@ def check_tune(exp, names, labels, out_toml, runs_per_step=None, max_memory=None
         bare = [label for label, declared in exp.declared().items() if not declared]
         hint = (f" ({', '.join(bare)} declare no numbers: a filter of one's own is tuned from Python, tracklab.tune, "
                 "or its factory declares them, tracklab.declare)" if bare else "")
-        nn = {getattr(f, "label", None) for f in getattr(exp, "filters", ()) if getattr(f, "kind", None) == "nn"}
+        nn = {getattr(f, "label", None) for f in getattr(exp, "filters", ()) if getattr(f, "kind", None) in HARD_RULES}
         hard = [label for label, declared in exp.declared().items()
                 if label in nn and (not labels or label in labels) and any(n in declared for n in names)]
-        if hard:  # declared but not tunable: the nearest neighbour's hard choice of a return
+        if hard:  # declared but not tunable: the nearest or strongest neighbour's hard choice of a return
             hint += (f" ({', '.join(hard)}: not tunable, its choice of a return has no gradient; tune its PDAF, "
                      "kind = \"pdaf\" with the same base)")
         raise ConfigError(exp.path, field, ",".join(names), f"no selected filter has any of these parameters{hint}")

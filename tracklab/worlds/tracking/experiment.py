@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab import __version__
+from tracklab.filters.association import HARD_RULES
 from tracklab.filters.kind import WriteBack
 from tracklab.filters.registry import KINDS
 from tracklab.memory import check
@@ -45,13 +46,13 @@ class FilterConfig:
 def declared_of(fc) -> dict:
     """The numbers a filter declares and has (name -> Param): those of its kind's that its table
     gives (a built-in kind; an association's and its base's), or those its factory declares
-    (``tracklab.declare``). The nearest neighbour's are not tuned: its choice of a return is a
-    hard one, with no gradient (tune its PDAF relaxation, kind = "pdaf" with the same base)."""
+    (``tracklab.declare``). The nearest and strongest neighbours' are not tuned: their choice of a
+    return is a hard one, with no gradient (tune their PDAF relaxation, kind = "pdaf", same base)."""
     if not isinstance(fc, FilterConfig):
         return dict(fc.declared)
     kinds = [KINDS[fc.kind]] + ([KINDS[fc.options["base"]]] if "base" in fc.options else [])
     declared = {n: p for k in reversed(kinds) for n, p in k.params.items() if n in fc.params}
-    if fc.kind == "nn":
+    if fc.kind in HARD_RULES:
         declared = {n: replace(p, tune=False) for n, p in declared.items()}
     return declared
 
