@@ -1,5 +1,7 @@
 """Several processes (jax.distributed): two processes on this machine, exchanging their sums
-over localhost, give the statistics of one process; only process 0 writes and prints."""
+over localhost, give the statistics of one process in chunks of another size (trackers in
+clutter: every sum, the track losses, by error and by existence, and their paired differences
+among them); only process 0 writes and prints."""
 
 import json
 import os
@@ -15,14 +17,9 @@ from tracklab import processes
 from tracklab.config import load_experiment
 
 from test_cli import _command
-from test_intervals import LINEAR
+from test_clutter import CLUTTER_IPDA
 
-EXPERIMENT = LINEAR.replace('name = "linear_small"', 'name = "two_processes"').replace("runs = 20", "runs = 50") + """
-[[filter]]
-kind = "kf"
-label = "KF high q"
-accel_sigma = 6.0
-"""
+EXPERIMENT = CLUTTER_IPDA.replace('name = "clutter_small"', 'name = "two_processes"').replace("runs = 128", "runs = 50")
 
 
 def _free_port() -> int:
@@ -46,8 +43,14 @@ def _wait_connected(port: int, timeout: float):
 
 
 def _numbers(a, b, where):
-    """Every number of ``a`` equals ``b``'s to 1e-12 (relative): the chunk-size tests' tolerance."""
-    if isinstance(a, dict):
+    """Every number of ``a`` equals ``b``'s to 1e-12 (relative): the chunk-size tests' tolerance; in
+    a series, relative to its largest entry (a mean error near zero at one step is a difference of
+    sums whose rounding is that of the sums)."""
+    if isinstance(a, list) and a and all(isinstance(x, float) for x in a):
+        assert len(a) == len(b), where
+        scale = float(np.nanmax(np.abs(a))) if np.any(np.isfinite(a)) else 0.0
+        np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-12 * scale + 1e-300, err_msg=where)
+    elif isinstance(a, dict):
         assert set(a) == set(b), where
         for k in a:
             _numbers(a[k], b[k], f"{where}.{k}")
@@ -79,13 +82,17 @@ def test_two_processes_give_the_statistics_of_one(tmp_path, xla_flags):
     assert [p.returncode for p in procs] == [0, 0], outs
     # process 0 alone prints (the collectives' library may announce its connection in both)
     assert "results written to" in outs[0][0] and "written" not in outs[1][0] and "|" not in outs[1][0]
-    load_experiment(path).run(out=tmp_path / "one", figures=False)  # one process: this one, with the same flags
+    one = load_experiment(path)
+    one.chunk = 16  # one process (this one, with the same flags) in chunks of another size
+    one.run(out=tmp_path / "one", figures=False)
     a = json.loads((tmp_path / "one" / "stats.json").read_text())
     b = json.loads((tmp_path / "two" / "stats.json").read_text())
     assert a["runs"] == b["runs"] == 50
     for label in a["filters"]:
         for part in ("summary", "half_width", "intervals", "paired", "cdf", "series"):
             _numbers(a["filters"][label][part], b["filters"][label][part], f"{label}.{part}")
+    _numbers(a["overflow"], b["overflow"], "overflow")
+    assert a["filters"]["IPDA"]["summary"]["lost"] > 0  # the losses were counted, not all zero
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.toml", "one", "two"]  # nothing else written
 
 
