@@ -28,7 +28,7 @@ def _geometry(eng, t):
 
 @pytest.mark.parametrize("t0", [5.0, 25.0, 33.0])  # straight flight, inside the 4 g turn, after it
 def test_los_kinematics_match_finite_differences(t0):
-    """The model's ε, ω, r, ṙ rows against 5-point differences of the simulated geometry (REFERENCE_MATH §1).
+    """The model's ε, ω, r, ṙ rows against 5-point differences of the simulated geometry (docs/mathematics.md §1).
 
     The antenna is on the LOS at t0 and turns at fixed rates (ω_Ae, ω_Ad); the
     true state is read off the geometry at t0 ± h, ± 2h.
@@ -76,7 +76,7 @@ def test_inertial_los_identities():
 
 
 def test_singer_block_matches_closed_form():
-    """Van Loan against REFERENCE_MATH §1's closed forms where they are well conditioned."""
+    """Van Loan against docs/mathematics.md §1's closed forms where they are well conditioned."""
     for T, tau, sigma in ((1.0, 10.0, 30.0), (0.5, 2.0, 5.0)):
         a = 1 / tau
         e, e2 = math.exp(-a * T), math.exp(-2 * a * T)

@@ -1,6 +1,6 @@
 """α-β / α-β-γ filters: gains, least-squares equivalence, steady state, gradients.
 
-References: REFERENCE_MATH §2; paper 002 eqs. 1–9. Conventions of the library:
+References: docs/mathematics.md §2; paper 002 eqs. 1–9. Conventions of the library:
 K = [α, β/T] (α-β, DWNA model) and K = [α, β/T, γ/(2T²)] (α-β-γ, DWPA model),
 tracking index λ = σ_v T²/σ_w.
 
@@ -95,7 +95,7 @@ def test_kalata_alpha_beta_is_steady_state_kalman_gain(T):
         K_ss = riccati_gain(F, Gam, sigma_v, sigma_w)
         a, b = kalata_alpha_beta(jnp.asarray(lam))
         np.testing.assert_allclose(gain_vector((a, b), T), K_ss, rtol=1e-8, err_msg=f"lambda={lam}")
-        # the paper's side relations (REFERENCE_MATH §2)
+        # the paper's side relations (docs/mathematics.md §2)
         np.testing.assert_allclose(float(b), 2 * (2 - float(a)) - 4 * np.sqrt(1 - float(a)), rtol=1e-8, atol=1e-14)
         np.testing.assert_allclose(lam**2, float(b) ** 2 / (1 - float(a)), rtol=1e-8)
         # and the filter applies exactly that gain, in the [α, β/T] layout
@@ -140,7 +140,7 @@ def test_kalata_alpha_beta_gamma_large_tracking_index(lam):
 
 @pytest.mark.parametrize("lam,T", [(0.03, 1.0), (0.5, 0.25), (5.0, 2.0)])
 def test_kalata_filter_covariance_converges_to_closed_form(lam, T):
-    """The filter's own propagated P (Joseph form with its fixed gain) ends at REFERENCE_MATH §2's P(k|k)."""
+    """The filter's own propagated P (Joseph form with its fixed gain) ends at docs/mathematics.md §2's P(k|k)."""
     sigma_w = 100.0
     sigma_v = lam * sigma_w / T**2
     params = {"q": jnp.asarray(sigma_v**2), "r": jnp.asarray([sigma_w**2]), "lam": jnp.asarray([lam])}

@@ -1,4 +1,4 @@
-"""The ``tracklab`` command, run as a separate process (DESIGN.md, "Command line", "Bad input")."""
+"""The ``tracklab`` command, run as a separate process (its options, and bad input refused in one line)."""
 
 from __future__ import annotations
 

@@ -3,7 +3,7 @@
 Every case starts from a small valid experiment (crossing scenario, polar
 sensor, one EKF, 20 runs, 10 steps), breaks one thing, and checks that
 ``load_experiment`` raises ``ConfigError`` with a one-line message naming the
-file, the field and the bad value (DESIGN.md, "Bad input").
+file, the field and the bad value.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Converted-measurement KF, polar-state KF and sequential EKF against NumPy references.
 
-Every reference below is written from the formulas (REFERENCE_MATH §4; paper 000
+Every reference below is written from the formulas (docs/mathematics.md §4; paper 000
 eqs. 8/12, 13–17, 31–34) in plain float64 NumPy with Python loops, without
 calling tracklab. Each filter is run on the same simulated measurements and must
 match its reference to a relative difference of 1e-9 at every step. The last
@@ -132,7 +132,7 @@ def assert_matches(res, ref_x, ref_P, rtol=RTOL):
 
 
 def ref_convert(z, sigma, debias):
-    """Converted position and covariance from REFERENCE_MATH §4, written out entry by entry."""
+    """Converted position and covariance from docs/mathematics.md §4, written out entry by entry."""
     if len(z) == 2:
         r, b = z
         sr2, sb2 = np.square(sigma)

@@ -2,7 +2,7 @@
 
 For a constant-velocity model with discrete white-noise acceleration and
 position measurements, the steady-state filtered covariance has the closed form
-of REFERENCE_MATH §2 (Kalata's α, β from the tracking index λ = σ_v T²/σ_w):
+of docs/mathematics.md §2 (Kalata's α, β from the tracking index λ = σ_v T²/σ_w):
 P = σ_w² [[α, β/T], [β/T, β(2α−β)/(2(1−α)T²)]]. A second check solves the DARE
 through the stable eigenvectors of the symplectic (Hamiltonian) matrix.
 """

@@ -1,4 +1,4 @@
-"""Strong tracking filter: against a NumPy implementation of REFERENCE_MATH §3, and
+"""Strong tracking filter: against a NumPy implementation of docs/mathematics.md §3, and
 its reduction to the Kalman filter when the fading factor stays at 1."""
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""Constant-gain α-β and α-β-γ filters (paper 002 §1, REFERENCE_MATH §2).
+"""Constant-gain α-β and α-β-γ filters (paper 002 §1, docs/mathematics.md §2).
 
 Per Cartesian axis, x⁺ = x⁻ + K (z − x⁻_pos) with K = [α, β/T] (α-β, eq. 1) or
 K = [α, β/T, γ/(2T²)] (α-β-γ; note the factor 2). The gains come from
@@ -46,7 +46,7 @@ def kalata_alpha_beta(lam):
 
 
 def kalata_alpha_beta_gamma(lam):
-    """Steady-state α, β, γ of the DWPA model (REFERENCE_MATH §2).
+    """Steady-state α, β, γ of the DWPA model (docs/mathematics.md §2).
 
     s is the root in (0, 1) of s³ + (λ/2 − 3)s² + (λ/2 + 3)s − 1 = 0: Cardano's
     formula while the cubic has one real root, the trigonometric form when it

@@ -114,7 +114,7 @@ def model_ekf(model, sensor, params) -> Filter:
 
 
 def model_cmkf(model, sensor, params, debias="plain") -> Filter:
-    """Converted-measurement KF (paper 000 §3.1; REFERENCE_MATH §4 variants)."""
+    """Converted-measurement KF (paper 000 §3.1; docs/mathematics.md §4 variants)."""
     if debias == "additive" and sensor.m != 2:
         raise ValueError("the additive (Lerro & Bar-Shalom) conversion is 2-D only")
     convert = CONVERSIONS[debias]

@@ -1,4 +1,4 @@
-"""Strong tracking filter with Zhou's suboptimal fading factor (REFERENCE_MATH §3).
+"""Strong tracking filter with Zhou's suboptimal fading factor (docs/mathematics.md §3).
 
 Per step, from x̂(k|k), P(k|k) and the measurement z(k+1):
 

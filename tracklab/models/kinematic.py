@@ -77,7 +77,7 @@ def cv(dim: int, dt: float) -> Kinematic:
 
 
 def ca(dim: int, dt: float) -> Kinematic:
-    """Constant acceleration with DWPA noise (REFERENCE_MATH §2)."""
+    """Constant acceleration with DWPA noise (docs/mathematics.md §2)."""
     Fa = np.array([[1.0, dt, dt**2 / 2], [0.0, 1.0, dt], [0.0, 0.0, 1.0]])
     F, G = _block(Fa, np.array([dt**2 / 2, dt, 1.0]), dim)
     return Kinematic("ca", dim, 3, F, G)

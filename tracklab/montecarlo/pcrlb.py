@@ -19,7 +19,7 @@ def pcrlb64(scenario, P0_cv, info_pos):
         return pcrlb(scenario, P0_cv, info_pos)
 
 def pcrlb(scenario, P0_cv, info_pos):
-    """Tichavský et al. recursion (REFERENCE_MATH §5) for linear-Gaussian dynamics.
+    """Tichavský et al. recursion (docs/mathematics.md §5) for linear-Gaussian dynamics.
 
     J_{k+1} = (Q + F J_k⁻¹ Fᵀ)⁻¹ + E[H̃ᵀ R⁻¹ H̃], the expectation averaged over
     the simulated truths (``info_pos``, (T, dim, dim), position block); J_0 = P0⁻¹.

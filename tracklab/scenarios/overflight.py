@@ -5,7 +5,7 @@ clockwise from north) whose ground track passes the site at the horizontal
 distance d = altitude / tan(max_elevation), so that the elevation seen from the
 site peaks at ``max_elevation`` at t = ``t_closest``. Paper 004 reports only
 "maximum elevation 74.947°, strong manoeuvre between 60 and 90 s" of its real
-target; 8 km, 250 m/s and t = 75 s of a 150 s pass are our choice (PAPERS.md).
+target; 8 km, 250 m/s and t = 75 s of a 150 s pass are our choice.
 The truth, in CV layout [x, ẋ, y, ẏ, z, ż] (east, north, up; m), is the same
 in every Monte-Carlo run.
 """

@@ -1,6 +1,6 @@
 """Converted measurements: polar/spherical to Cartesian with their covariances.
 
-Three conversions (REFERENCE_MATH §4):
+Three conversions (docs/mathematics.md §4):
 
 * ``plain`` — x = r cos β, … with the linearised covariance J R Jᵀ at the
   measurement (paper 000 eqs. 8 and 12).

@@ -4,7 +4,7 @@ Kinds (z as a function of the position p):
 
 * ``polar`` (2-D): [r, β], r = √(x²+y²), β = atan2(y, x) (paper 000 eqs. 5–7).
 * ``spherical`` (3-D): [r, az, el], az = atan2(y, x), el = atan2(z, √(x²+y²))
-  (REFERENCE_MATH §4; paper 002's laser, eq. 13).
+  (docs/mathematics.md §4; paper 002's laser, eq. 13).
 * ``angles`` (3-D): [az, el] (paper 002's infrared sensor, eq. 11).
 * ``cartesian`` (1-, 2- or 3-D): the position itself (the linear-Gaussian case).
 * ``mount``: an alt-azimuth mount's azimuth and elevation in degrees. It

@@ -1,6 +1,6 @@
 """The boresight-frame model of the four-coordinate tracker (paper 001, eqs. 2–4).
 
-The paper's state equation (2) is lost in the scan; REFERENCE_MATH §1 rebuilds
+The paper's state equation (2) is lost in the scan; docs/mathematics.md §1 rebuilds
 it from line-of-sight kinematics. Antenna axes: x_A the boresight, y_A the "d"
 axis, z_A the "e" axis; the antenna is gyro-stabilised with no roll about its
 boresight (ω_Ax = 0), so the transport terms ω_Ax·ω of §1 vanish.

@@ -21,7 +21,7 @@ Range and velocity loops, independent as in the radars the paper starts from
 [r, ṙ, r̈] on the pre-averaged range discriminator sets the range gate, and an
 α-β tracker [ṙ, r̈] on the pre-averaged velocity discriminator sets the
 velocity gate, both every filter period. Their gains are fixed, the steady
-states of the matching models (Kalata's index, REFERENCE_MATH §2): σ_v is the
+states of the matching models (Kalata's index, docs/mathematics.md §2): σ_v is the
 Singer acceleration's increment per period for the range loop (Wiener-process
 acceleration) and that increment divided by the period for the velocity loop
 (piecewise-constant acceleration rate), ``loop_gains``. The range estimate is

@@ -1,4 +1,4 @@
-"""The decoupled linear tracker of Pearson and Shibata (paper 001 §2, remark 2; REFERENCE_MATH §1).
+"""The decoupled linear tracker of Pearson and Shibata (paper 001 §2, remark 2; docs/mathematics.md §1).
 
 Three 3-state channels filtered separately: elevation [ε_e, ω_e, a_e], azimuth
 [ε_d, ω_d, a_d] and range [r, ṙ, a_r]. Each channel is linear once the other
@@ -14,7 +14,7 @@ sample (``boresight.antenna_motion``) entering the ε rows exactly.
 
 ``separate=True`` splits the range channel as a classical radar does: a range
 loop [r, ṙ, a_r] on the range discriminator alone and a velocity loop [ṙ, a_r]
-on the velocity discriminator alone (comparison 3 of PAPERS.md: the single
+on the velocity discriminator alone (paper 001's third comparison: the single
 range loop against the cross-coupled range–velocity channel of Fig. 5).
 """
 

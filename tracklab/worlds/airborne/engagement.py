@@ -12,7 +12,7 @@ The nominal target path is analytic (a line, a circular arc, a line), so its
 velocity and acceleration are exact at any time. In Monte-Carlo runs a Singer
 acceleration (σ_m, τ) on each axis is added; the perturbation's position,
 velocity and acceleration are sampled exactly at the radar's sample period
-(``singer_block``, REFERENCE_MATH §1).
+(``singer_block``, docs/mathematics.md §1).
 """
 
 from __future__ import annotations
@@ -92,7 +92,7 @@ def _nominal_range(eng, t):
 def singer_block(T, tau, sigma):
     """Exact discretisation (Φ, Q) of one Singer axis [p, v, a] over T, by Van Loan's method.
 
-    The closed forms of REFERENCE_MATH §1 agree (tested) but lose every digit to
+    The closed forms of docs/mathematics.md §1 agree (tested) but lose every digit to
     cancellation at the radar's sample period (T/τ = 10⁻³: Q₁₁ ~ T⁵).
     """
     A = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, -1.0 / tau]])

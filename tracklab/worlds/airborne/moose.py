@@ -1,4 +1,4 @@
-"""A Moose-type adaptive tracker (paper 001 Fig. 8; REFERENCE_MATH §6).
+"""A Moose-type adaptive tracker (paper 001 Fig. 8; docs/mathematics.md §6).
 
 Moose models a manoeuvre as a mean acceleration ("command") that jumps among
 a few levels, plus a correlated random part. Here each of the model's three

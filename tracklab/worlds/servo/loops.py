@@ -1,6 +1,6 @@
 """The azimuth axis of paper 003's theodolite: double loop, velocity-lag compensation, on-axis tracking.
 
-Blocks (paper 003 §3; REFERENCE_MATH §7), in the same angular unit throughout:
+Blocks (paper 003 §3; docs/mathematics.md §7), in the same angular unit throughout:
 
 * plant G_s(s) = 0.763 / ((0.663s + 1)(0.008s + 1)) from the drive command to the
   axis rate ω, θ = ∫ω, and the velocity corrector

@@ -1,4 +1,4 @@
-"""Continuous transfer functions and their discretisation (paper 003's servo, REFERENCE_MATH §7).
+"""Continuous transfer functions and their discretisation (paper 003's servo, docs/mathematics.md §7).
 
 A ``TransferFunction`` holds numerator and denominator polynomials in s
 (highest power first). ``lead_lag(k, num_taus, den_taus)`` builds the
