@@ -136,7 +136,8 @@ def cmd_list(args) -> int:
             print(f"  {'':<4}{spec} ({field}): {shown}" + (f"; structure: {', '.join(rest)}" if rest else ""))
     if not files:
         print("  (none)")
-    print("filter kinds ([[filter]] of a file; parameters [unit] = default):")
+    print("filter kinds ([[filter]] of a file; parameters [unit] = default; * tunable (tracklab tune --params), "
+          "× a sweep's scale factor (--grid NAME=LO:HI:N); any number sweeps by its path):")
     for k in KINDS.values():
         print(f"  {k.name:<16} {k.doc} [sensors: {', '.join(k.accepts)}]")
         print(f"  {'':<16}   {', '.join(p.describe(n) for n, p in k.params.items())}")
@@ -278,10 +279,10 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser():
-    from tracklab.filters.registry import KINDS, SCALABLE, TUNABLE
-
-    p = _Parser(prog="tracklab", description="Monte-Carlo evaluation of tracking filters; filter kinds: "
-                + ", ".join(KINDS) + " (tracklab list describes them)")
+    """The command's parser. It imports nothing heavy (no JAX, no registry of kinds), so that
+    ``--help`` and a bad argument answer at once; ``tracklab list`` names the kinds and numbers."""
+    p = _Parser(prog="tracklab", description="Monte-Carlo evaluation of tracking filters. `tracklab list` describes "
+                "every filter, scenario and sensor kind and the numbers each declares")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
     many = _Parser(add_help=False)  # several processes (jax.distributed): run, sweep and tune
     g = many.add_argument_group("several processes (one per host or GPU; README: Several processes)")
@@ -306,7 +307,8 @@ def build_parser():
     tu = sub.add_parser("tune", help="tune filter parameters by gradient descent through the Monte-Carlo runs",
                         parents=[many])
     tu.add_argument("experiment")
-    tu.add_argument("--params", required=True, help=f"comma-separated: {', '.join(TUNABLE)}")
+    tu.add_argument("--params", required=True, help="comma-separated names of the numbers to tune (q, r, lam, …; "
+                                                      "tracklab list marks the tunable ones)")
     tu.add_argument("--steps", type=_positive_int, default=200)
     tu.add_argument("--lr", type=float, default=0.05, help="Adam learning rate (unconstrained coordinates)")
     tu.add_argument("--loss", help="mse_pos (default) | pred_mse | nll; airborne: pointing (default) | los_rate; "
@@ -325,7 +327,8 @@ def build_parser():
     sw.add_argument("experiment")
     sw.add_argument("--grid", action="append", required=True, help="PATH=LO:HI:N (evenly spaced) or PATH=LO:HI:N:log values of a number of the file (sensor.sigma_r, "
                          "scenario.speed, filter[EKF].accel_sigma, tracker[joint EKF].q_scale); or NAME=LO:HI:N, "
-                         f"log-spaced scale factors of a filter parameter ({', '.join(SCALABLE)}). Repeat for a 2-D grid")
+                         "log-spaced scale factors of a filter parameter (q, r, …; tracklab list marks the sweepable "
+                         "ones). Repeat for a 2-D grid")
     sw.add_argument("--runs", type=_positive_int, help="Monte-Carlo runs per grid point (default: the file's)")
     sw.add_argument("--out", help="folder (default: results/<name>_sweep/)")
     sw.add_argument("--no-figures", action="store_true")

@@ -187,16 +187,19 @@ class Param:
         return self.default(context) if callable(self.default) else self.default
 
     def describe(self, name, with_doc=False) -> str:
-        """``name [unit] = default`` (and what it is, ``with_doc``), as `tracklab list` shows it."""
+        """``name [unit] = default`` (and what it is, ``with_doc``), as `tracklab list` shows it;
+        marked ``*`` when `tracklab tune` may tune it, ``×`` when a sweep may scale it."""
         unit = f" [{self.unit}]" if self.unit else ""
+        marks = ("*" if self.tune else "") + ("×" if self.sweep else "")
+        marks = f" {marks}" if marks else ""
         d = self.default
         if callable(d):  # a default of the context: what the doc says of it
-            return f"{name}{unit} ({self.doc})"
+            return f"{name}{unit} ({self.doc}){marks}"
         doc = f" ({self.doc})" if with_doc and self.doc else ""
         if d is None:
-            return f"{name}{unit}{doc}"
+            return f"{name}{unit}{doc}{marks}"
         shown = f"[{', '.join(f'{v:g}' for v in d)}]" if isinstance(d, tuple) else f"{d:g}"
-        return f"{name}{unit} = {shown}{doc}"
+        return f"{name}{unit} = {shown}{doc}{marks}"
 
 
 @dataclass(frozen=True)
