@@ -7,7 +7,7 @@ Yujun et al., "Study on high accuracy tracking target in lidar", eq. 12), then `
 does the rest (Joseph form). Its two numbers are declared (``tracklab.declare``): they arrive
 in ``params``, and ``tracklab tune --params accel_var`` and ``tracklab sweep --grid
 "filter[CMKF (own code)].accel_var=…"`` name them. Its maths is the built-in ``cmkf``'s; the
-README's "Your own filter" shows it run from Python and tuned.
+documentation's "Your own filter" (docs/own-filter.md) shows it run from Python and tuned.
 """
 
 import jax.numpy as jnp

@@ -119,6 +119,11 @@ def cmd_list(args) -> int:
     from tracklab.scenarios import SCENARIOS
     from tracklab.sensors import SENSORS
 
+    if args.markdown:  # the documentation's reference of the kinds
+        from tracklab.report.kinds import kinds_markdown
+
+        sys.stdout.write(kinds_markdown())
+        return 0
     folder = Path(args.dir)
     if not folder.is_dir():
         raise ConfigError("tracklab list", "--dir", str(folder), "must be a folder (of experiment files)")
@@ -142,7 +147,7 @@ def cmd_list(args) -> int:
         print(f"  {k.name:<16} {k.doc} [sensors: {', '.join(k.accepts)}]")
         print(f"  {'':<16}   {', '.join(p.describe(n) for n, p in k.params.items())}")
     own = '"package.module:factory"'
-    print(f"  {own:<16} your own: factory(context, **the table's other keys) -> Filter (README: Your own filter)")
+    print(f"  {own:<16} your own: factory(context, **the table's other keys) -> Filter (docs/own-filter.md)")
     print("sensors:")
     for k in SENSORS.values():
         print(f"  {k.name:<16} {k.doc}")
@@ -285,7 +290,7 @@ def build_parser():
                 "every filter, scenario and sensor kind and the numbers each declares")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
     many = _Parser(add_help=False)  # several processes (jax.distributed): run, sweep and tune
-    g = many.add_argument_group("several processes (one per host or GPU; README: Several processes)")
+    g = many.add_argument_group("several processes (one per host or GPU; docs/devices.md)")
     g.add_argument("--coordinator", metavar="HOST:PORT", help="process 0's address (or TRACKLAB_COORDINATOR)")
     g.add_argument("--processes", type=_positive_int, metavar="N", help="process count (or TRACKLAB_PROCESSES)")
     g.add_argument("--process-id", type=int, metavar="I", help="this process, 0 … N-1 (or TRACKLAB_PROCESS_ID)")
@@ -348,6 +353,8 @@ def build_parser():
     rp.set_defaults(func=cmd_reproduce)
     ls = sub.add_parser("list", help="experiment files, filter kinds (with their sensors and parameters), sensors and scenarios")
     ls.add_argument("--dir", default="experiments", help="folder of experiment files")
+    ls.add_argument("--markdown", action="store_true", help="the kinds and their numbers as the documentation's "
+                                                             "Markdown reference (docs/kinds.md)")
     ls.set_defaults(func=cmd_list)
     return p
 

@@ -2,7 +2,7 @@
 
 Importing tracklab changes nothing: another JAX program in the same process sees JAX as
 it was. ``tracklab`` (the command) calls ``configure()`` first thing; a Python user calls
-it before anything touches JAX, as the README shows. It sets:
+it before anything touches JAX, as the documentation shows (docs/python.md). It sets:
 
 * **One CPU device per core** (``--xla_force_host_platform_device_count``): the
   Monte-Carlo runner splits every chunk of runs over the devices, each share in its own
