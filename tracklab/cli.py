@@ -18,6 +18,21 @@ def writes() -> bool:
     return writes()
 
 
+def _formats(s):
+    """--format: comma-separated figure formats (png, pdf, svg)."""
+    from tracklab.report.figures import FORMATS
+
+    given = tuple(f.strip().lower() for f in s.split(",") if f.strip())
+    if not given or any(f not in FORMATS for f in given):
+        raise argparse.ArgumentTypeError(f"{s!r}: figure formats from {', '.join(FORMATS)} (comma-separated)")
+    return given
+
+
+def _figures(args):
+    """What the figures are written as: none (--no-figures), or the --format list (default PNG)."""
+    return False if args.no_figures else args.format
+
+
 def _positive_int(s):
     try:
         v = int(s)
@@ -95,7 +110,7 @@ def cmd_run(args) -> int:
     if writes():  # what would otherwise be minutes without a line (a DEKF trained first)
         for line in exp.before_runs():
             print(f"{exp.name}: {line}", file=sys.stderr, flush=True)
-    doc = exp.run(runs=runs, seed=args.seed, out=out, progress=progress, figures=not args.no_figures,
+    doc = exp.run(runs=runs, seed=args.seed, out=out, progress=progress, figures=_figures(args),
                   precision="float32" if args.float32 else None, max_memory=args.max_memory, **extra)
     if doc is None:  # a process other than 0 of a multi-process run: process 0 writes and prints
         return 0
@@ -208,7 +223,7 @@ def cmd_tune(args) -> int:
     run_tune(exp, names, steps=args.steps, lr=args.lr, loss=args.loss, runs_per_step=args.runs_per_step,
              labels=labels, out_toml=out, folder=folder,
              log=lambda line: (raise_if_interrupted(), writes() and print(line, flush=True)), every=args.every,
-             figures=not args.no_figures)
+             figures=_figures(args))
     return 0
 
 
@@ -243,7 +258,7 @@ def cmd_sweep(args) -> int:
     n = grid_points(axes)
     print(f"# {exp.name}: {n} grid points x {runs_text(doc['runs'])} runs, {doc['wall_s']:.1f} s wall, "
           f"{doc['compile_s']:.1f} s of it compiling or loading the program")
-    write_sweep(exp, doc, out, figures=not args.no_figures)
+    write_sweep(exp, doc, out, figures=_figures(args))
     print((out / "table.md").read_text(), end="")
     if not args.no_figures and no_figures(doc):
         print(no_figures(doc))
@@ -270,7 +285,7 @@ def cmd_reproduce(args) -> int:
 
     out = args.out or (tempfile.mkdtemp(prefix="tracklab-quick-") if args.quick else "results")
     folders = reproduce(args.experiments, out, quick=args.quick, max_memory=args.max_memory,
-                        figures=not args.no_figures)
+                        figures=_figures(args))
     print(f"{len(folders)} results folders and {Path(out) / 'README.md'} (combined table) rebuilt")
     return 0
 
@@ -302,7 +317,9 @@ def build_parser():
     r.add_argument("--runs", type=_positive_int, help="Monte-Carlo runs (default: the file's)")
     r.add_argument("--seed", type=_seed, help="random seed (default: the file's)")
     r.add_argument("--out", help="results folder (default: results/<name>/)")
-    r.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    r.add_argument("--no-figures", action="store_true", help="skip the figures")
+    r.add_argument("--format", type=_formats, default=("png",), metavar="FMT",
+                   help="figure formats, comma-separated: png (150 dpi), pdf, svg (vector, for papers); default png")
     r.add_argument("--float32", action="store_true", help="single precision (as precision = \"float32\")")
     r.add_argument("--precision", type=_fraction, metavar="REL",
                    help="run until every filter's position-RMSE interval is within ± REL of it (e.g. 0.005; "
@@ -326,6 +343,7 @@ def build_parser():
     tu.add_argument("--out", help="tuned experiment file (default: <name>_tuned.toml beside the results folder)")
     tu.add_argument("--max-memory", type=_size, help="refuse a tuning needing more (default: this machine's memory)")
     tu.add_argument("--no-figures", action="store_true", help="skip loss.png")
+    tu.add_argument("--format", type=_formats, default=("png",), metavar="FMT", help="figure formats: png, pdf, svg")
     tu.set_defaults(func=cmd_tune)
     sw = sub.add_parser("sweep", help="evaluate every filter on a grid of values of any numbers of the file, or of "
                                       "filter-parameter scale factors", parents=[many])
@@ -337,6 +355,7 @@ def build_parser():
     sw.add_argument("--runs", type=_positive_int, help="Monte-Carlo runs per grid point (default: the file's)")
     sw.add_argument("--out", help="folder (default: results/<name>_sweep/)")
     sw.add_argument("--no-figures", action="store_true")
+    sw.add_argument("--format", type=_formats, default=("png",), metavar="FMT", help="figure formats: png, pdf, svg")
     sw.add_argument("--max-memory", type=_size, help="refuse a sweep needing more (default: this machine's memory)")
     sw.set_defaults(func=cmd_sweep)
     tb = sub.add_parser("table", help="one error-statistics table from several results folders")
@@ -349,7 +368,8 @@ def build_parser():
     rp.add_argument("--experiments", default="experiments")
     rp.add_argument("--out", help="results folder (default results/, or a temporary one with --quick)")
     rp.add_argument("--max-memory", type=_size, help="refuse experiments needing more (default: this machine's memory)")
-    rp.add_argument("--no-figures", action="store_true", help="skip the PNG figures (the numbers alone)")
+    rp.add_argument("--no-figures", action="store_true", help="skip the figures (the numbers alone)")
+    rp.add_argument("--format", type=_formats, default=("png",), metavar="FMT", help="figure formats: png, pdf, svg")
     rp.set_defaults(func=cmd_reproduce)
     ls = sub.add_parser("list", help="experiment files, filter kinds (with their sensors and parameters), sensors and scenarios")
     ls.add_argument("--dir", default="experiments", help="folder of experiment files")

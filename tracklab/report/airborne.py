@@ -15,10 +15,12 @@ from tracklab.report.figures import (
     band,
     cdf_panel,
     coincide_note,
+    formats_of,
     legend,
     panel_grid,
     plain_log,
     pyplot,
+    save,
     styles,
     summary_value,
 )
@@ -83,15 +85,15 @@ def write_airborne_results(doc, folder: Path, figures=True):
     """The tables and (``figures``) the figures of an airborne statistics document; returns it."""
 
     write_tables(folder, doc, airborne_tables(doc))
-    if figures:
-        plot_airborne(doc, folder)
+    if formats_of(figures):
+        plot_airborne(doc, folder, formats_of(figures))
     return doc
 
-AIRBORNE_PANELS = [  # file, [(series key, axis label)], the paper's figure
-    ("pointing_error.png", [("pointing", "true pointing error RMS (mrad)")], "paper 001 Fig. 3"),
-    ("rate_error.png", [("los_rate", "LOS-rate error RMS (mrad/s)"), ("range_rate", "range-rate error RMS (m/s)")],
+AIRBORNE_PANELS = [  # file's stem, [(series key, axis label)], the paper's figure
+    ("pointing_error", [("pointing", "true pointing error RMS (mrad)")], "paper 001 Fig. 3"),
+    ("rate_error", [("los_rate", "LOS-rate error RMS (mrad/s)"), ("range_rate", "range-rate error RMS (m/s)")],
      "paper 001 Fig. 4"),
-    ("range_error.png", [("range", "range error RMS (m)"), ("range_rate", "range-rate error RMS (m/s)")],
+    ("range_error", [("range", "range error RMS (m)"), ("range_rate", "range-rate error RMS (m/s)")],
      "paper 001 Fig. 6"),
 ]
 
@@ -102,7 +104,7 @@ def _range_axis(ax, t, rng):
     top.set_xticks([r for r in (20, 15, 10, 7, 5, 4, 3, 2) if rng.min() <= r <= rng.max()])
     top.set_xlabel("nominal range (km)", fontsize=8)
 
-def plot_airborne(doc, folder: Path):
+def plot_airborne(doc, folder: Path, formats=("png",)):
     """The figures of an airborne results folder: per-period RMS errors with their confidence bands
     (``pointing_error.png``, ``rate_error.png``, ``range_error.png``: paper 001 Figs. 3, 4, 6), the
     average NEES with its χ² band (``nees.png``) and the distribution of the runs' RMS pointing
@@ -130,8 +132,7 @@ def plot_airborne(doc, folder: Path):
         axes[-1, 0].set_xlabel("time (s)")
         axes[0, 0].set_title(f"{title} ({ref})", fontsize=9)
         legend(fig, axes, f"bands: {percent(level)} confidence of each period's RMS over the runs in lock")
-        fig.savefig(folder / name, dpi=110)
-        plt.close(fig)
+        save(plt, fig, folder, name, formats)
     shown = {l: f for l, f in filters.items() if np.isfinite(arr(f["series"]["nees"])).any()}
     if shown:
         fig, axes = panel_grid(plt, 1, 1, width=8.0, height=3.4)
@@ -150,8 +151,7 @@ def plot_airborne(doc, folder: Path):
         _range_axis(ax, t, rng)
         ax.set_title(title, fontsize=9)
         legend(fig, axes, "in brackets: the NEES averaged over the whole run")
-        fig.savefig(folder / "nees.png", dpi=110)
-        plt.close(fig)
+        save(plt, fig, folder, "nees", formats)
     windows = [w for w in doc.get("windows", []) if any(f"pointing[{w}]" in f.get("cdf", {}) for f in filters.values())]
     if windows:
         cols = min(len(windows), 3)
@@ -171,5 +171,4 @@ def plot_airborne(doc, folder: Path):
             ax.axis("off")
         fig.suptitle(f"{title}: distribution of the runs' RMS true pointing error per window", fontsize=9)
         legend(fig, axes, "; ".join(notes))
-        fig.savefig(folder / "error_cdf.png", dpi=110)
-        plt.close(fig)
+        save(plt, fig, folder, "error_cdf", formats)

@@ -46,6 +46,30 @@ def pyplot():
     return plt
 
 
+FORMATS = ("png", "pdf", "svg")  # what figures may be written as: PNG for screens, PDF and SVG for papers
+DPI = 150  # a PNG's resolution
+
+
+def formats_of(figures) -> tuple:
+    """The formats a ``figures`` argument asks for: True → PNG, False or None → none, a format or a
+    list of them (``FORMATS``) → those; anything else: ValueError in one line."""
+    if figures is True:
+        return ("png",)
+    if figures is False or figures is None:
+        return ()
+    given = (figures,) if isinstance(figures, str) else tuple(figures) if isinstance(figures, (list, tuple)) else None
+    if not given or any(f not in FORMATS for f in given):
+        raise ValueError(f"figures = {figures!r}: must be True, False or formats from {', '.join(FORMATS)}")
+    return tuple(dict.fromkeys(given))
+
+
+def save(plt, fig, folder: Path, stem: str, formats=("png",)):
+    """``fig`` written as ``folder/stem.<format>`` for each format (PNG at ``DPI``), then closed."""
+    for f in formats:
+        fig.savefig(Path(folder) / f"{stem}.{f}", dpi=DPI if f == "png" else None)
+    plt.close(fig)
+
+
 def arr(v):
     """A stats.json series (None for missing) as a float array (NaN for missing)."""
     return np.array([np.nan if x is None else x for x in v], float) if isinstance(v, list) else np.asarray(v, float)
@@ -166,8 +190,8 @@ def _window_slice(doc, t):
     return slice((a - 1) // stride, b // stride)
 
 
-def plot_figures(doc, folder: Path):
-    """Every figure of a tracking results folder (see the module's doc)."""
+def plot_figures(doc, folder: Path, formats=("png",)):
+    """Every figure of a tracking results folder (see the module's doc), in each of ``formats``."""
     plt = pyplot()
     dt, stride = doc["dt"], doc.get("series_stride", 1)
     t = dt * np.arange(stride, doc["steps"] + 1, stride)
@@ -178,7 +202,7 @@ def plot_figures(doc, folder: Path):
     st = styles(labels, len(t))
     ctx = dict(doc=doc, t=t, filters=filters, st=st, dim=dim, folder=folder, plt=plt, AX=axes_names,
                pu=doc.get("units", ("m", "m/s"))[0], title=f"{doc['name']} — {doc['runs']} runs",
-               w=_window_slice(doc, t))
+               w=_window_slice(doc, t), formats=formats)
     _rmse(ctx)
     _rmse_axes(ctx)
     _mean_error(ctx)
@@ -190,9 +214,9 @@ def plot_figures(doc, folder: Path):
         _track_loss(ctx)
     example = doc.get("example_run") or {}
     if example:
-        plot_example(doc, example, t, dim, folder, st)
+        plot_example(doc, example, t, dim, folder, st, formats)
         if dim >= 2 and doc.get("units", ("m",))[0] == "m":
-            plot_track(doc, example, folder)
+            plot_track(doc, example, folder, formats)
 
 
 def panel_grid(plt, rows, cols, width=7.0, height=2.6):
@@ -228,19 +252,23 @@ def _rmse(ctx):
                 name = "PCRLB in clutter (IRF)" if doc.get("clutter") else "PCRLB"
                 ax.plot(t, arr(bounds[bound]), "k--", lw=0.9, label=name if r == 0 else None)
             plain_log(ax)
+            shade_windows(ax, doc, t, names=r == 0)
             ax.set_ylabel(f"RMSE {'position' if q == 'pos' else 'velocity'} ({unit})")
             ax.grid(True, which="both", alpha=0.3)
             if r == 0:
                 notes += coinciding(curves, ctx["w"])
-                ax.set_title("filters far from the others (own scale)" if c == 1 else ctx["title"], fontsize=9)
+                ax.set_title("filters far from the others (own scale)" if c == 1 else ctx["title"], fontsize=9,
+                             pad=title_pad(doc))
         axs[-1, c].set_xlabel("time (s)")
-    lost = ("curves over the runs not yet lost at each step (tracks drifting towards loss included), "
-            "in brackets over the runs never lost; IRF: the information reduction factor") if doc.get("track_loss") else ""
-    legend(fig, axs, "; ".join(filter(None, [coincide_note(notes), f"bands: {percent(doc.get('level', 0.95))} "
-                                              "confidence of each per-step RMSE; in brackets the time-averaged "
-                                              "position and velocity RMSE", lost])))
-    fig.savefig(ctx["folder"] / "rmse.png", dpi=110)
-    ctx["plt"].close(fig)
+    level = percent(doc.get("level", 0.95))
+    a, b = doc.get("window", (1, doc["steps"]))
+    averaged = (f"under each filter: its position and velocity RMSE over steps {a}–{b} ± its {level} interval"
+                + (" (over the runs never lost)" if doc.get("track_loss") else ""))
+    lost = ("curves over the runs not yet lost at each step (tracks drifting towards loss included); "
+            "IRF: the information reduction factor") if doc.get("track_loss") else ""
+    legend(fig, axs, "; ".join(filter(None, [coincide_note(notes), f"bands: {level} confidence of each per-step "
+                                              "RMSE", averaged, lost, windows_note(doc, t)])))
+    save(ctx["plt"], fig, ctx["folder"], "rmse", ctx["formats"])
 
 
 def _rmse_axes(ctx):
@@ -252,17 +280,20 @@ def _rmse_axes(ctx):
         for l, f in filters.items():
             s = f["series"]
             band(ax, t, arr(s[f"rmse_{AX[a]}"]), arr(s[f"rmse_{AX[a]}_hw"]) if f"rmse_{AX[a]}_hw" in s else None,
-                  st[l], l + summary_value(f, f"rmse_{AX[a]}"))
+                  st[l], _label(l, f, [(f"rmse_{AX[b]}", pu, AX[b]) for b in range(dim)]) if a == 0 else None)
         if f"pcrlb_{AX[a]}" in doc["bounds"]:
-            ax.plot(t, arr(doc["bounds"][f"pcrlb_{AX[a]}"]), "k--", lw=0.9, label="PCRLB")
+            ax.plot(t, arr(doc["bounds"][f"pcrlb_{AX[a]}"]), "k--", lw=0.9, label="PCRLB" if a == 0 else None)
         plain_log(ax)
+        shade_windows(ax, doc, t, names=a == 0)
         ax.set_ylabel(f"RMSE {AX[a]} ({pu})")
         ax.grid(True, which="both", alpha=0.3)
-    axs[0, 0].set_title(ctx["title"], fontsize=9)
+    axs[0, 0].set_title(ctx["title"], fontsize=9, pad=title_pad(doc))
     axs[-1, 0].set_xlabel("time (s)")
-    legend(fig, axs)
-    fig.savefig(ctx["folder"] / "rmse_axes.png", dpi=110)
-    ctx["plt"].close(fig)
+    a, b = doc.get("window", (1, doc["steps"]))
+    legend(fig, axs, "; ".join(filter(None, [f"under each filter: its RMSE per axis over steps {a}–{b} ± its "
+                                              f"{percent(doc.get('level', 0.95))} interval; bands: the same for each "
+                                              "step", windows_note(doc, t)])))
+    save(ctx["plt"], fig, ctx["folder"], "rmse_axes", ctx["formats"])
 
 
 def _mean_error(ctx):
@@ -281,13 +312,15 @@ def _mean_error(ctx):
                       arr(s[f"mean_err_{AX[a]}_hw"]) if f"mean_err_{AX[a]}_hw" in s else None, st[l],
                       l if a == 0 else None)
             ax.axhline(0, color="k", lw=0.6)
+            shade_windows(ax, doc, t, names=a == 0)
             ax.set_ylabel(f"mean error {AX[a]} ({pu})")
             ax.grid(True, alpha=0.3)
-        axs[0, c].set_title("filters far from the others (own scale)" if c == 1 else ctx["title"], fontsize=9)
+        axs[0, c].set_title("filters far from the others (own scale)" if c == 1 else ctx["title"], fontsize=9,
+                            pad=title_pad(doc))
         axs[-1, c].set_xlabel("time (s)")
-    legend(fig, axs, f"bands: {percent(doc.get('level', 0.95))} confidence of the mean error over the runs")
-    fig.savefig(ctx["folder"] / "mean_error.png", dpi=110)
-    ctx["plt"].close(fig)
+    legend(fig, axs, "; ".join(filter(None, [f"bands: {percent(doc.get('level', 0.95))} confidence of the mean "
+                                              "error over the runs", windows_note(doc, t)])))
+    save(ctx["plt"], fig, ctx["folder"], "mean_error", ctx["formats"])
 
 
 def _track_loss(ctx):
@@ -319,8 +352,7 @@ def _track_loss(ctx):
             f"P_D = {clutter['p_detect']:g}") if clutter else ""
     legend(fig, axs, f"bands: {percent(doc.get('level', 0.95))} Wilson intervals of the fraction lost; validated "
                      f"returns over the runs on track{note}")
-    fig.savefig(ctx["folder"] / "track_loss.png", dpi=110)
-    ctx["plt"].close(fig)
+    save(ctx["plt"], fig, ctx["folder"], "track_loss", ctx["formats"])
 
 
 def _pred_error(ctx):
@@ -337,17 +369,14 @@ def _pred_error(ctx):
         for l, f in shown.items():
             ax.plot(t, arr(f["series"][f"pred_rmse_{AX[a]}"]), label=_label(l, f, keys) if a == 0 else "_nolegend_",
                     **st[l])
-        for w, (t0, t1) in _window_spans(doc).items():
-            ax.axvspan(t0, t1, color="0.9", zorder=0)
-            ax.text(0.5 * (t0 + t1), 1.0, w, transform=ax.get_xaxis_transform(), ha="center", va="bottom", fontsize=7)
+        shade_windows(ax, doc, t, names=a == 0)
         plain_log(ax)
         ax.set_ylabel(f"one-step pred. RMS err {AX[a]} ({pu})")
         ax.grid(True, which="both", alpha=0.3)
-    axs[0, 0].set_title(ctx["title"], fontsize=9, pad=14 if _window_spans(doc) else 6)  # above the windows' names
+    axs[0, 0].set_title(ctx["title"], fontsize=9, pad=title_pad(doc))  # above the windows' names
     axs[-1, 0].set_xlabel("time (s)")
-    legend(fig, axs)
-    fig.savefig(ctx["folder"] / "pred_error.png", dpi=110)
-    ctx["plt"].close(fig)
+    legend(fig, axs, windows_note(doc, t))
+    save(ctx["plt"], fig, ctx["folder"], "pred_error", ctx["formats"])
 
 
 def _consistency(ctx, key, ylabel, dof):
@@ -389,20 +418,33 @@ def _consistency(ctx, key, ylabel, dof):
             if vals.size:
                 top = float(np.percentile(vals, 99.5))
                 ax.set_ylim(0, top * 1.15)
-                clipped = [l for l in group if np.nanmax(curves[l]) > top * 1.15]
-                if clipped:
-                    notes.append(f"{', '.join(clipped)} clipped at the top (the first steps)")
+                for l in group:
+                    where = clipped_spans(t, curves[l], top * 1.15)
+                    if where:
+                        notes.append(f"{l} above the axis at {where}")
             notes += coinciding(curves, w)
-            ax.set_title(ctx["title"], fontsize=9)
+            ax.set_title(ctx["title"], fontsize=9, pad=title_pad(doc))
         else:
             ax.set_yscale("log")
             ax.set_title("filters far from consistency (own log scale)", fontsize=9)
+        shade_windows(ax, doc, t, names=g == 0)
         ax.set_ylabel(ylabel if g == 0 else ylabel.split(" (")[0])
         ax.grid(True, which="both", alpha=0.3)
     axs[-1, 0].set_xlabel("time (s)")
-    legend(fig, axs, "; ".join(n if isinstance(n, str) else coincide_note([n]) for n in notes))
-    fig.savefig(ctx["folder"] / f"{key}.png", dpi=110)
-    ctx["plt"].close(fig)
+    legend(fig, axs, "; ".join([n if isinstance(n, str) else coincide_note([n]) for n in notes]
+                               + ([windows_note(doc, t)] if windows_note(doc, t) else [])))
+    save(ctx["plt"], fig, ctx["folder"], key, ctx["formats"])
+
+
+def clipped_spans(t, v, limit, most=3) -> str:
+    """Where ``v`` passes ``limit``, as time spans ("t = 0.5–3 s, 60–71 s"); "" when nowhere."""
+    over = np.isfinite(v) & (v > limit)
+    if not over.any():
+        return ""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], over.astype(int), [0]])))
+    spans = [(t[a], t[b - 1]) for a, b in zip(edges[::2], edges[1::2])]
+    shown = [f"{a:g} s" if a == b else f"{a:g}–{b:g} s" for a, b in spans[:most]]
+    return "t = " + ", ".join(shown) + (f" and {len(spans) - most} more" if len(spans) > most else "")
 
 
 def cdf_panel(ax, shown, st, key, pct_key=None):
@@ -440,11 +482,10 @@ def _error_cdf(ctx):
     ax.set_ylabel("fraction of runs with error ≤ x")
     ax.set_title(ctx["title"], fontsize=9)
     legend(fig, axs, coincide_note(groups))
-    fig.savefig(ctx["folder"] / "error_cdf.png", dpi=110)
-    ctx["plt"].close(fig)
+    save(ctx["plt"], fig, ctx["folder"], "error_cdf", ctx["formats"])
 
 
-def plot_track(doc, example, folder: Path):
+def plot_track(doc, example, folder: Path, formats=("png",)):
     """The true path seen from above, coloured by each filter's per-step position RMSE (errors
     along the path). The filters near the others share one colour scale; one far from them
     has its own, beside its panel."""
@@ -490,8 +531,7 @@ def plot_track(doc, example, folder: Path):
     fig.colorbar(plt.cm.ScalarMappable(norm=shared, cmap="viridis"), ax=[a for a, l in zip(axes.flat, vals) if l in main],
                  shrink=0.8, label="position RMSE (m)")
     fig.suptitle(f"{doc['name']} — {doc['runs']} runs: error along the path", fontsize=10)
-    fig.savefig(folder / "track.png", dpi=110)
-    plt.close(fig)
+    save(plt, fig, folder, "track", formats)
 
 
 def _window_spans(doc):
@@ -500,7 +540,53 @@ def _window_spans(doc):
     return {w: v for w, v in table.items() if isinstance(v, list) and w in doc.get("windows", [])}
 
 
-def plot_example(doc, example, t, dim, folder: Path, st=None):
+def manoeuvre_spans(doc) -> dict:
+    """A manoeuvre scenario's turns and accelerations as named time spans ("4 g turn": [t0, t1])."""
+    sc = doc.get("experiment", {}).get("scenario", {})
+    if sc.get("kind") != "manoeuvre":
+        return {}
+    out, t0 = {}, 0.0
+    for seg in sc.get("segments", []):
+        t1 = t0 + float(seg.get("duration", 0.0))
+        what = [f"{seg['turn_g']:g} g turn"] if seg.get("turn_g") else []
+        what += [f"{seg['accel']:+g} m/s²"] if seg.get("accel") else []
+        if what:
+            out[", ".join(what)] = [t0, t1]
+        t0 = t1
+    return out
+
+
+def shade_windows(ax, doc, t, names=True):
+    """The report window (steps outside it hatched) and the named time windows and manoeuvres
+    (shaded, named along the top when ``names``) on a time axis."""
+    a, b = doc.get("window", (1, doc["steps"]))
+    dt = doc["dt"]
+    for lo, hi in ((t[0] - dt, (a - 1) * dt), (b * dt, t[-1] + dt)):
+        if hi > lo and lo < t[-1] and hi > t[0]:
+            ax.axvspan(max(lo, t[0]), min(hi, t[-1]), facecolor="none", edgecolor="0.8", hatch="//", lw=0,
+                       zorder=-1)
+    for i, (w, (t0, t1)) in enumerate({**_window_spans(doc), **manoeuvre_spans(doc)}.items()):
+        # under everything drawn (bands included); neighbouring windows in two tints
+        ax.axvspan(t0, t1, color=("#e6e9f2", "#f2ebe1")[i % 2], zorder=-2, lw=0)
+        if names:
+            ax.text(0.5 * (t0 + t1), 1.0, w, transform=ax.get_xaxis_transform(), ha="center", va="bottom", fontsize=7)
+
+
+def title_pad(doc) -> float:
+    """A panel title's padding: above the windows' names when ``shade_windows`` writes them."""
+    return 14.0 if (_window_spans(doc) or manoeuvre_spans(doc)) else 6.0
+
+
+def windows_note(doc, t) -> str:
+    """What the hatching and shading of ``shade_windows`` are, for a legend ("" when none is drawn)."""
+    a, b = doc.get("window", (1, doc["steps"]))
+    parts = [f"hatched: outside the report window (steps {a}–{b})"] if (a > 1 or b < doc["steps"]) else []
+    if _window_spans(doc) or manoeuvre_spans(doc):
+        parts.append("shaded: " + ", ".join([*_window_spans(doc), *manoeuvre_spans(doc)]))
+    return "; ".join(parts)
+
+
+def plot_example(doc, example, t, dim, folder: Path, st=None, formats=("png",)):
     """Run 0: true and estimated position and velocity (``run0.png``), and the errors with each
     filter's own ±3σ envelope from its covariance (``run0_error.png``; paper 002 Figs. 4–7)."""
     import matplotlib.pyplot as plt
@@ -546,8 +632,7 @@ def plot_example(doc, example, t, dim, folder: Path, st=None):
         for ax in axes[-1]:
             ax.set_xlabel("time (s)")
         legend(fig, axes)
-        fig.savefig(folder / ("run0.png" if kind == "state" else "run0_error.png"), dpi=110)
-        plt.close(fig)
+        save(plt, fig, folder, "run0" if kind == "state" else "run0_error", formats)
 
 
 def _clip_to_main(ax, est, truth, col, sd):

@@ -13,9 +13,11 @@ from tracklab.report.figures import (
     arr,
     cdf_panel,
     coincide_note,
+    formats_of,
     legend,
     panel_grid,
     pyplot,
+    save,
     styles,
 )
 
@@ -24,8 +26,8 @@ def write_servo_results(doc, folder: Path, figures=True):
     """The tables and (``figures``) the figures of a servo statistics document; returns it."""
 
     write_tables(folder, doc)
-    if figures:
-        plot_servo(doc, folder)
+    if formats_of(figures):
+        plot_servo(doc, folder, formats_of(figures))
     return doc
 
 def _run0_panels(plt, doc, traces, t, settle, ylabel, key, unit, shared_scale):
@@ -61,7 +63,7 @@ def _run0_panels(plt, doc, traces, t, settle, ylabel, key, unit, shared_scale):
     fig.supylabel(ylabel, fontsize=9)
     return fig
 
-def plot_servo(doc, folder: Path):
+def plot_servo(doc, folder: Path, formats=("png",)):
     """The figures of a servo results folder: run 0's tracking error (``tracking_error.png``, paper
     003 Figs. 5–7) and rate-estimate error (``rate_error.png``, Fig. 4), and the distribution of
     the runs' maximum tracking errors (``error_cdf.png``)."""
@@ -76,14 +78,12 @@ def plot_servo(doc, folder: Path):
                        "tracking error (′)", "max_track_err", "′", shared_scale=False)
     fig.suptitle(f"{doc['name']} — run 0 (paper 003 Figs. 5–7); each panel's scale from t ≥ {settle:g} s (dotted)",
                  fontsize=9)
-    fig.savefig(folder / "tracking_error.png", dpi=110)
-    plt.close(fig)
+    save(plt, fig, folder, "tracking_error", formats)
     if ex["rate_error"]:
         fig = _run0_panels(plt, doc, ex["rate_error"], tf, settle, "rate-estimate error (°/s)",
                            "max_rate_err", "°/s", shared_scale=True)
         fig.suptitle(f"{doc['name']} — run 0 (paper 003 Fig. 4); one scale, from t ≥ {settle:g} s (dotted)", fontsize=9)
-        fig.savefig(folder / "rate_error.png", dpi=110)
-        plt.close(fig)
+        save(plt, fig, folder, "rate_error", formats)
     shown = {l: f for l, f in filters.items() if f.get("cdf")}
     if shown:
         fig, axes = panel_grid(plt, 1, 1, width=8.0, height=3.6)
@@ -93,5 +93,4 @@ def plot_servo(doc, folder: Path):
         ax.set_ylabel("fraction of runs with error ≤ x")
         ax.set_title(f"{doc['name']}: {doc['runs']} runs", fontsize=9)
         legend(fig, axes, coincide_note(groups))
-        fig.savefig(folder / "error_cdf.png", dpi=110)
-        plt.close(fig)
+        save(plt, fig, folder, "error_cdf", formats)

@@ -12,7 +12,7 @@ import numpy as np
 from tracklab.intervals import percent, with_half_width
 from tracklab.output import atomic_folder
 from tracklab.report.document import write_json
-from tracklab.report.figures import pyplot
+from tracklab.report.figures import formats_of, pyplot, save
 from tracklab.report.tables import md_cell
 
 
@@ -81,8 +81,8 @@ def _write_sweep(exp, doc, tmp, figures):
         "experiment": exp.raw,
     }
     write_json(tmp / "sweep.json", summary_only)
-    if figures and not no_figures(doc):
-        _plot(doc, names, labels, tmp)
+    if formats_of(figures) and not no_figures(doc):
+        _plot(doc, names, labels, tmp, formats_of(figures))
     return rows
 
 def sweep_caption(doc) -> str:
@@ -142,7 +142,7 @@ def value_axis(ax, vals, positive):
     ax.set_ylim(mid - half, mid + half)
     ax.ticklabel_format(axis="y", style="plain", useOffset=False)
 
-def _plot(doc, names, labels, folder):
+def _plot(doc, names, labels, folder, formats=("png",)):
     """Per metric one figure, a panel per filter laid out in a grid (at most three across): 1-D
     sweeps as curves with each point's confidence interval, 2-D sweeps as heatmaps with each
     cell centred on its grid values. The NEES's consistent value (its degrees of freedom) is a
@@ -211,5 +211,4 @@ def _plot(doc, names, labels, folder):
         if mark and len(names) == 2:
             title += f" — white line: consistent NEES = {mark}"
         fig.suptitle(title, fontsize=10)
-        fig.savefig(folder / f"sweep_{metric}.png", dpi=110)
-        plt.close(fig)
+        save(plt, fig, folder, f"sweep_{metric}", formats)

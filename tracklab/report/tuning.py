@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from tracklab.report.document import write_json
-from tracklab.report.figures import pyplot
+from tracklab.report.figures import formats_of, pyplot, save
 from tracklab.report.tables import md_cell
 
 
@@ -49,7 +49,7 @@ def tune_report(exp, res, folder: Path, *, steps, lr, tuned_file, log_lines, fig
                f"{res.wall_s:.1f} s." + (f" {res.stopped}." if res.stopped else "") + "\n")
     (folder / "table.md").write_text("\n".join(rows) + "\n" + caption)
     (folder / "tune.log").write_text("\n".join(log_lines) + "\n")
-    if not res.history or not figures:
+    if not res.history or not formats_of(figures):
         return
     plt = pyplot()
     fig, axs = plt.subplots(len(lanes), 1, figsize=(7.5, 2.4 * len(lanes) + 0.6), squeeze=False, sharex=True,
@@ -72,5 +72,4 @@ def tune_report(exp, res, folder: Path, *, steps, lr, tuned_file, log_lines, fig
     axs[0, 0].legend(fontsize=7, loc="upper right")
     axs[-1, 0].set_xlabel("Adam step")
     fig.suptitle(f"{exp.name}: tuning loss per filter", fontsize=10)
-    fig.savefig(folder / "loss.png", dpi=110)
-    plt.close(fig)
+    save(plt, fig, folder, "loss", formats_of(figures))

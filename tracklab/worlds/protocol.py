@@ -33,6 +33,7 @@ from tracklab.checks import MAX_RUN_STEPS, MAX_RUNS, check_count, check_precisio
 from tracklab.montecarlo import runner
 from tracklab.parameters import Param
 from tracklab.report.document import run_into_folder
+from tracklab.report.figures import FORMATS, formats_of
 
 
 CHECKED_METHODS = ("run", "simulate", "monte_carlo")  # every world's: their arguments checked first
@@ -193,8 +194,9 @@ class Experiment(abc.ABC):
         grid points): what a sweep keeps of each point."""
 
     @abc.abstractmethod
-    def write(self, doc: dict, folder: Path, figures: bool = True) -> dict:
-        """The results folder's files of a statistics document (tables, stats.json, figures)."""
+    def write(self, doc: dict, folder: Path, figures=True) -> dict:
+        """The results folder's files of a statistics document (tables, stats.json, figures: True for
+        PNG, False for none, or formats from ``report.figures.FORMATS``)."""
 
     @property
     @abc.abstractmethod
@@ -244,6 +246,12 @@ class Experiment(abc.ABC):
             raise wrong_type(where, "out", out, "must be None (results/<name>/) or the path of the results folder")
         if "max_memory" in given:
             check_count(where, "max_memory", given["max_memory"], optional=True)
+        if "figures" in given:
+            try:
+                formats_of(given["figures"])
+            except ValueError:
+                raise wrong_type(where, "figures", given["figures"], "must be True, False, or a format or list of "
+                                 f"formats from {', '.join(FORMATS)}") from None
 
     @checking_arguments
     def run(self, runs=None, seed=None, out=None, progress=None, figures=True, precision=None, max_memory=None,

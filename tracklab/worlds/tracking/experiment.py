@@ -23,7 +23,7 @@ from tracklab.memory import check
 from tracklab.montecarlo.statistics import REPORT_WINDOW, statistics
 from tracklab.pytree import named_leaves, with_leaves
 from tracklab.report.document import decimate, series_stride, write_tables
-from tracklab.report.figures import plot_figures
+from tracklab.report.figures import formats_of, plot_figures
 from tracklab.sensors import SENSOR_SIGMAS, SensorSuite
 from tracklab.sensors.clutter import cluttered_of
 from tracklab.worlds import protocol
@@ -317,6 +317,6 @@ def example_of(exp, res):
 def write_results(doc, folder: Path, figures=True):
     """A statistics document's tables and (``figures``) figures in ``folder``; returns the document."""
     write_tables(folder, doc)
-    if figures:
-        plot_figures(doc, folder)
+    if formats_of(figures):
+        plot_figures(doc, folder, formats_of(figures))
     return doc
