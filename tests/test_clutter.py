@@ -339,7 +339,10 @@ def test_ones_own_pdaf_from_python_is_the_built_in_one():
     from tracklab.scenarios import ConstantVelocity
 
     sc = ConstantVelocity(dt=1.0, steps=25, initial=(0.0, 10.0, 0.0, 5.0), accel_sigma=0.5)
-    sen = Cluttered(Sensor("cartesian", 2, (10.0, 10.0), 0.9), 2e-4, (120.0, 120.0), None, 16)
+    sen = Cluttered(Sensor("cartesian", 2, (10.0, 10.0), 0.9), 2e-4, (120.0, 120.0), None, 32)
+    with pytest.raises(ConfigError, match="max_returns = 16: must be at least 24"):  # 11.5 false alarms a scan
+        tracklab.experiment(sc, Cluttered(sen.sensor, 2e-4, (120.0, 120.0), None, 16), [{"kind": "pdaf"}],
+                            track_loss=(60.0, 5))
     Qd = np.kron(np.eye(2), 0.25 * np.array([[0.25, 0.5], [0.5, 1.0]]))
     with jax.enable_x64(True):
         mine = pdaf(kf(F, H, Qd, 100.0 * np.eye(2)), 2, clutter_density=2e-4, p_detect=0.9)

@@ -29,7 +29,7 @@ def _where(tmp_path) -> Path:
 
 def test_the_site_builds_strictly_and_the_kinds_reference_is_the_declarations(tmp_path):
     pytest.importorskip("mkdocs", reason="the docs extra (pip install -e '.[docs]')")
-    from tracklab.report.kinds import kinds_markdown
+    from tracklab.config.reference import kinds_markdown
 
     assert (DOCS / "kinds.md").read_text() == kinds_markdown(), \
         "docs/kinds.md is not what the declarations say: tracklab list --markdown > docs/kinds.md"

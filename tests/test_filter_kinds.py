@@ -41,10 +41,15 @@ def test_every_kind_declares_a_doc_the_sensors_it_accepts_and_constrained_parame
 
 
 def test_a_parameter_name_means_the_same_in_every_kind():
-    """`tracklab tune --params q` and `sweep --grid q=…` name a parameter across kinds."""
+    """`tracklab tune --params q` and `sweep --grid q=…` name a parameter across kinds: the same
+    constraint and scale-factor sweep everywhere; tunable everywhere but in the associations that
+    choose one return (nn, snf), whose hard choice has no gradient."""
+    hard = {"nn", "snf"}
     for name in {n for k in KINDS.values() for n in k.params}:
         ps = declarations(name)
-        assert len({(p.constraint, p.tune, p.sweep) for p in ps}) == 1, name
+        assert len({(p.constraint, p.sweep) for p in ps}) == 1, name
+        assert len({k.params[name].tune for k in KINDS.values() if name in k.params and k.name not in hard}) == 1, name
+    assert not any(p.tune for k in hard for p in KINDS[k].params.values())
 
 
 def test_what_tune_and_sweep_accept():

@@ -135,15 +135,15 @@ def cmd_list(args) -> int:
     from tracklab.sensors import SENSORS
 
     if args.markdown:  # the documentation's reference of the kinds
-        from tracklab.report.kinds import kinds_markdown
+        from tracklab.config.reference import kinds_markdown
 
         sys.stdout.write(kinds_markdown())
         return 0
-    folder = Path(args.dir)
-    if not folder.is_dir():
+    folder = Path(args.dir or "experiments")
+    if args.dir is not None and not folder.is_dir():
         raise ConfigError("tracklab list", "--dir", str(folder), "must be a folder (of experiment files)")
     print(f"experiments ({folder}/):")
-    files = sorted(folder.glob("*.toml"))
+    files = sorted(folder.glob("*.toml")) if folder.is_dir() else []
     for p in files:
         print(f"  {p}")
         for field, spec, factory in kinds_of_ones_own(p):  # the numbers a kind of one's own declares
@@ -167,6 +167,8 @@ def cmd_list(args) -> int:
     for k in SENSORS.values():
         print(f"  {k.name:<16} {k.doc}")
         print(f"  {'':<16}   {', '.join(p.describe(n) for n, p in k.params.items())}; p_detect, period [s], offset [s]")
+    print(f"  {'':<16} every sensor, in clutter: clutter_density [per unit measurement volume], clutter_window or "
+          "clutter_coverage [its units], max_returns = 16, snr [dB] (docs/clutter.md)")
     print(f"  {own:<16} your own: factory(Context(dt, steps, dim), **keys) -> CustomSensor(h, R, angles=...)")
     print("scenarios:")
     for k in SCENARIOS.values():
@@ -372,7 +374,7 @@ def build_parser():
     rp.add_argument("--format", type=_formats, default=("png",), metavar="FMT", help="figure formats: png, pdf, svg")
     rp.set_defaults(func=cmd_reproduce)
     ls = sub.add_parser("list", help="experiment files, filter kinds (with their sensors and parameters), sensors and scenarios")
-    ls.add_argument("--dir", default="experiments", help="folder of experiment files")
+    ls.add_argument("--dir", default=None, help="folder of experiment files (default: experiments/, if there is one)")
     ls.add_argument("--markdown", action="store_true", help="the kinds and their numbers as the documentation's "
                                                              "Markdown reference (docs/kinds.md)")
     ls.set_defaults(func=cmd_list)

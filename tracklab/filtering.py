@@ -72,7 +72,8 @@ def run_filter(flt: Filter, z, *, x0, P0, params=None, dt: float = 1.0, precisio
     lead = 1 if scans else 0  # a scan's axis of returns
     if z.ndim - lead not in (2, 3):
         raise ValueError(f"{where}: z has shape {z.shape}: expected "
-                         + ("(T, K, m) or (N, T, K, m) (scans)" if scans else "(T, m) or (N, T, m)"))
+                         + ("(T, K, m) or (N, T, K, m) (scans)" if scans else
+                            "(T, m) or (N, T, m) (scans of K returns: scans=True, with z (T, K, m) or (N, T, K, m))"))
     xs, Ps = numeric(where, "x0", x0).shape, numeric(where, "P0", P0).shape
     n = xs[-1] if xs else 0
     if len(xs) not in (1, 2) or len(Ps) not in (2, 3) or Ps[-2:] != (n, n):

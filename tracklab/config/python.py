@@ -105,9 +105,14 @@ def _cluttered(c: Cluttered, sensor, field) -> Cluttered:
         raise ConfigError(WHERE, f"{field}.max_returns", c.max_returns, "must be an integer in [1, 1024]")
     if c.snr is not None and (not is_real(c.snr) or not -30.0 <= c.snr <= 60.0):
         raise ConfigError(WHERE, f"{field}.snr", c.snr, "must be None or the target's mean SNR in dB, in [-30, 60]")
-    return Cluttered(dataclasses.replace(sensor, misses=True), float(c.density), tuple(half.tolist()),
-                     None if c.center is None else tuple(float(v) for v in c.center), int(c.max_returns),
-                     None if c.snr is None else float(c.snr))
+    out = Cluttered(dataclasses.replace(sensor, misses=True), float(c.density), tuple(half.tolist()),
+                    None if c.center is None else tuple(float(v) for v in c.center), int(c.max_returns),
+                    None if c.snr is None else float(c.snr))
+    why = out.problem()
+    if why is not None:
+        name, value, allowed = why
+        raise ConfigError(WHERE, f"{field}.{name}", value, allowed)
+    return out
 
 
 def _describe(obj):
@@ -145,7 +150,7 @@ def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: in
                prior: dict | None = None, window: tuple[int, int] | None = None, windows: dict | None = None,
                chunk: int | None = None, precision: str = "float64", level: float = 0.95,
                baseline: str | None = None, target_precision: float | None = None,
-               track_loss: tuple[float, int] | None = None) -> Experiment:
+               track_loss: tuple | None = None) -> Experiment:
     """An open-loop experiment from Python objects (see the module's doc).
 
     ``prior``: ``pos_sigma`` (m), ``vel_sigma`` (m/s), ``acc_sigma`` (the prior std of states
@@ -155,8 +160,9 @@ def experiment(scenario, sensors, filters, *, name: str = "experiment", runs: in
     intervals; ``baseline``: the filter the paired differences are to (default the first);
     ``target_precision``: run until every filter's position-RMSE interval is within ± that
     fraction of it, ``runs`` at most (as ``runs = "auto"`` in a file). ``chunk``: runs per
-    chunk (None: the default). ``track_loss``: (distance, steps), the track-loss test of a file's
-    ``[track_loss]`` (required with a ``Cluttered`` sensor; steps may be left out: 5).
+    chunk (None: the default). ``track_loss``: (distance, steps, existence), the track-loss test of a
+    file's ``[track_loss]`` (required with a ``Cluttered`` sensor; steps may be left out: 5; the
+    existence threshold of an IPDA's test too).
 
     Refused (``ConfigError``, one line): besides what a file's reader refuses, a scenario whose
     ``dt`` is not a finite number > 0 or whose ``steps`` is not an integer >= 1, ``filters`` not
@@ -266,13 +272,16 @@ def _loss(track_loss, suite):
             raise ConfigError(WHERE, "track_loss", None, "is required with a cluttered sensor: (distance, steps), a "
                               "track lost after `steps` consecutive steps with its position error beyond `distance`")
         return None
+    allowed = "must be (distance > 0[, steps >= 1 (default 5)[, existence in (0, 1) (an IPDA's test)]])"
     t = tuple(track_loss) if isinstance(track_loss, (list, tuple)) else (track_loss,)
-    distance, steps = (t + (5,))[:2] if len(t) in (1, 2) else (None, None)
+    distance, steps, existence = t + (None, 5, None)[len(t):] if len(t) in (1, 2, 3) else (None, None, None)
     if not is_real(distance) or not (np.isfinite(distance) and distance > 0):
-        raise ConfigError(WHERE, "track_loss", track_loss, "must be (distance > 0, steps >= 1)")
+        raise ConfigError(WHERE, "track_loss", track_loss, allowed)
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
-        raise ConfigError(WHERE, "track_loss", track_loss, "must be (distance > 0, steps >= 1)")
-    return TrackLoss(float(distance), int(steps))
+        raise ConfigError(WHERE, "track_loss", track_loss, allowed)
+    if existence is not None and not (is_real(existence) and 0.0 < float(existence) < 1.0):
+        raise ConfigError(WHERE, "track_loss", track_loss, allowed)
+    return TrackLoss(float(distance), int(steps), None if existence is None else float(existence))
 
 
 __all__ = ["experiment"]

@@ -118,9 +118,10 @@ def _build_sensors(f, parsed, dim, dt, steps, folders=()):
         if not sensor.report_mask(steps).any():
             raise ConfigError(f, f"{where}.offset", offset, f"the sensor reports at no step: the run ends at {steps * dt:g} s")
         sensors.append(sensor)
-    cluttered = [where for (where, _, _), s in zip(parsed, sensors) if isinstance(s, Cluttered)]
+    cluttered = [(where, s) for (where, _, _), s in zip(parsed, sensors) if isinstance(s, Cluttered)]
     if cluttered and len(sensors) > 1:
-        raise ConfigError(f, f"{cluttered[0]}.clutter_density", "...", "clutter needs the experiment's only sensor: "
+        where, s = cluttered[0]
+        raise ConfigError(f, f"{where}.clutter_density", float(np.asarray(s.density)), "clutter needs the experiment's only sensor: "
                           "several sensors with a cluttered one are not supported")
     return SensorSuite(tuple(sensors))
 
@@ -143,11 +144,16 @@ def _clutter(f, where, sn, sensor):
     capacity = sn.integer("max_returns", 16, lo=1, hi=1024)
     snr = sn.number("snr", None, lo=-30.0, hi=60.0)
     if sn.has("clutter_window") == sn.has("clutter_coverage"):
-        raise ConfigError(f, f"{where}.clutter_window", sn.get("clutter_window"), "give the clutter's region: either "
-                          f"clutter_window = [{m} half-widths about the target] or clutter_coverage = [[lo, hi] x {m}]")
+        raise ConfigError(f, f"{where}.clutter_window", sn.get("clutter_window"), "give the clutter's region, one of "
+                          f"clutter_window = [{m} half-widths about the target] or clutter_coverage = [[lo, hi] x {m}], "
+                          "not both")
     if sn.has("clutter_window"):
-        half = sigma_list(f, f"{where}.clutter_window", sn.get("clutter_window"), m)
-        return Cluttered(sensor, density, half, None, capacity, snr)
+        window = sn.get("clutter_window")
+        if not isinstance(window, list) and len(set(sensor.angle_mask)) > 1:  # metres and radians: one each
+            raise ConfigError(f, f"{where}.clutter_window", window, f"must be {m} half-widths, one per component "
+                              f"({', '.join(sensor.names)}): its components have different units")
+        half = sigma_list(f, f"{where}.clutter_window", window, m)
+        return _checked_clutter(f, where, Cluttered(sensor, density, half, None, capacity, snr))
     box = sn.get("clutter_coverage")
     sn.used.add("clutter_coverage")
     if (not isinstance(box, list) or len(box) != m
@@ -157,7 +163,25 @@ def _clutter(f, where, sn, sensor):
         raise ConfigError(f, f"{where}.clutter_coverage", box, f"must be [[lo, hi] x {m}] with lo < hi, one per "
                           f"component ({', '.join(sensor.names)})")
     lo, hi = np.asarray(box, float).T
-    return Cluttered(sensor, density, tuple((hi - lo) / 2.0), tuple((hi + lo) / 2.0), capacity, snr)
+    return _checked_clutter(f, where, Cluttered(sensor, density, tuple((hi - lo) / 2.0), tuple((hi + lo) / 2.0),
+                                                capacity, snr))
+
+
+def _checked_clutter(f, where, sensor: Cluttered) -> Cluttered:
+    """``sensor`` if its region and capacity can be simulated faithfully (``Cluttered.problem``);
+    else the field of the file to change, in one line."""
+    why = sensor.problem()
+    if why is None:
+        return sensor
+    name, value, allowed = why
+    field = {"half_width": "clutter_coverage" if sensor.center is not None else "clutter_window",
+             "coverage": "clutter_coverage", "density": "clutter_density"}.get(name, name)
+    half = np.asarray(sensor.half_width, float)
+    box = None if sensor.center is None else np.stack([np.asarray(sensor.center) - half, np.asarray(sensor.center) + half], 1)
+    shown = {"clutter_window": half.tolist(), "max_returns": sensor.max_returns,
+             "clutter_coverage": None if box is None else box.tolist(),
+             "clutter_density": float(np.asarray(sensor.density))}[field]
+    raise ConfigError(f, f"{where}.{field}", shown, allowed)
 
 
 def _timing(f, where, sn, dt):
@@ -320,6 +344,9 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
         filters.append(fc)
 
     loss = _track_loss(f, raw, suite)
+    if loss is not None and loss.existence is not None and not any(t.get("kind") == "ipda" for t in flist):
+        raise ConfigError(f, "track_loss.existence", loss.existence, "tests an existence probability, which no filter "
+                          "here reports: it needs a kind = \"ipda\" filter (or leave it out)")
 
     rp = Section(f, "report", raw.get("report", {}))
     w = rp.get("window", [1, steps])
@@ -516,7 +543,7 @@ def parse_filter(f, i, table, suite: SensorSuite, dim, dt, default_q, scenario=N
 
     if cluttered_of(meas) is not None and not kind.scans:
         raise ConfigError(f, f"filter[{i}].kind", kind.name, "sees a cluttered sensor's scans: name an association, "
-                          f"kind = \"pdaf\" (or \"nn\", \"ipda\") with base = \"{kind.name}\"")
+                          f"kind = \"pdaf\" (or \"nn\", \"snf\", \"ipda\") with base = \"{kind.name}\"")
     entry = Entry(fs, kind, meas, dim=dim, dt=dt, accel_sigma=default_q, sigma_fields=SENSOR_SIGMAS.get(mkind, ()),
                   guide=guide_sensor)
     model, params, options = kind.read(entry)

@@ -41,6 +41,7 @@ the base's innovation covariance. A z of one measurement (m,) is a scan of one r
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from typing import Mapping
@@ -324,14 +325,17 @@ def association_numbers(e, rule: str) -> dict:
             raise e.error("clutter_density", None, "is required: the sensor has no clutter to take it from "
                           "(false alarms per unit volume of the measurement space)")
         if rule == "ipda" and lam <= 0:
-            raise e.error("clutter_density", lam, "must be > 0 for the IPDA (its existence update divides by it)")
+            raise e.error("clutter_density", lam, "must be > 0 for the IPDA (its existence update divides by it): "
+                          + ("give the filter its own clutter_density, or the sensor one > 0" if
+                             not e.has("clutter_density") else "the λ the IPDA assumes"))
         out["clutter_density"] = lam
     if rule == "ipda":
         out["p_survive"] = e.number("p_survive", P_SURVIVE.default, lo=0.0, hi=1.0)
         out["existence0"] = e.number("existence0", EXISTENCE0.default, lo=0.0, hi=1.0)
-        for k in ("p_survive", "existence0"):
-            if not 0.0 < out[k] < 1.0:
-                raise e.error(k, out[k], "must be a probability in (0, 1)")
+        if not 0.0 < out["p_survive"] <= 1.0:
+            raise e.error("p_survive", out["p_survive"], "must be a probability in (0, 1]")
+        if not 0.0 < out["existence0"] < 1.0:
+            raise e.error("existence0", out["existence0"], "must be a probability in (0, 1)")
     return out
 
 
@@ -383,12 +387,13 @@ def association_kinds(bases: Mapping) -> tuple:
 
     common = {"q": PROCESS_NOISE, "r": MEASUREMENT_NOISE}
     pda = {"gate": GATE, "p_detect": ASSUMED_P_DETECT, "clutter_density": ASSUMED_DENSITY}
+    # a hard choice of one return has no gradient: the nearest and strongest neighbours' numbers are not tuned
+    hard = {n: dataclasses.replace(p, tune=False) for n, p in (common | {"gate": GATE}).items()}
     kinds = (
         FilterKind("nn", "nearest neighbour: the validated return of least d² (base = ekf, kf, …)", ANY_SENSOR,
-                   common | {"gate": GATE}, reader("nn"),
-                   builder("nn"), scans=True),
+                   hard, reader("nn"), builder("nn"), scans=True),
         FilterKind("snf", "strongest neighbour: the validated return of greatest amplitude (needs the sensor's snr; "
-                   "base = ekf, kf, …)", ANY_SENSOR, common | {"gate": GATE}, reader("snf"), builder("snf"), scans=True),
+                   "base = ekf, kf, …)", ANY_SENSOR, hard, reader("snf"), builder("snf"), scans=True),
         FilterKind("pdaf", "probabilistic data association filter (base = ekf, kf, …)", ANY_SENSOR, common | pda,
                    reader("pdaf"), builder("pdaf"), scans=True),
         FilterKind("ipda", "integrated PDA: the PDAF with the target's existence probability (base = ekf, kf, …)",

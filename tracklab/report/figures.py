@@ -338,7 +338,10 @@ def _track_loss(ctx):
     ax.set_ylabel("tracks lost by t (%)")
     ax.set_ylim(bottom=0)
     ax.grid(True, alpha=0.3)
-    ax.set_title(f"{ctx['title']}: lost after {loss['steps']} steps beyond {loss['distance']:g} {ctx['pu']}", fontsize=9)
+    test = f"lost after {loss['steps']} steps beyond {loss['distance']:g} {ctx['pu']}"
+    if loss.get("existence") is not None:
+        test += f" (an IPDA's also with its existence below {loss['existence']:g})"
+    ax.set_title(f"{ctx['title']}: {test}", fontsize=9)
     if scans:
         ax = axs[1, 0]
         for l, f in scans.items():

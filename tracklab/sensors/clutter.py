@@ -37,6 +37,7 @@ Signal Processing 49(7), 2001), evaluated by Monte-Carlo integration.
 from __future__ import annotations
 
 import functools
+import statistics
 from dataclasses import dataclass
 from typing import Any
 
@@ -187,12 +188,57 @@ class Cluttered:
 
     def measure(self, key, pos):
         """Scans of a position sequence ``pos`` (T, dim) -> (T, capacity, m)."""
-        return measure_whole(self, key, pos)
+        return measure_whole(self, key, jnp.asarray(pos, dtype=jnp.result_type(float)))
 
     def information(self, p):
         """The Fisher information of one scan about the position without clutter, Pd·Hᵀ R⁻¹ H: the
         PCRLB scales it by the information reduction factor over Pd (``scan_information_scale``)."""
         return self.sensor.information(p)
+
+    def capacity_needed(self, tail: float = 1e-6) -> int:
+        """The least capacity K at which a scan (the detection and N ~ Poisson(λV) false alarms)
+        holds more than K returns with probability below ``tail``."""
+        mean = float(np.asarray(self.mean_false_alarms(), float))
+        if mean > 500.0:  # e^(−mean) underflows: the normal approximation, far beyond any capacity anyway
+            return int(np.ceil(mean + statistics.NormalDist().inv_cdf(1.0 - tail) * np.sqrt(mean))) + 1
+        p, cdf, n = np.exp(-mean), 0.0, 0
+        while True:  # P(N ≤ n), term by term
+            cdf += p
+            if 1.0 - cdf < tail:
+                return n + 1
+            n += 1
+            p *= mean / n
+
+    def problem(self, max_overflow: float = 1e-3) -> tuple[str, object, str] | None:
+        """Why this cluttered sensor's numbers cannot be simulated faithfully, as (field, value,
+        what is allowed), or None: a clutter region not one positive half-width per component, an
+        angle's half-width above π or its coverage outside (−π, π], or a capacity that more than
+        ``max_overflow`` of the scans pass (an overflowed scan keeps the target's detection and
+        drops false alarms: the tracker's task would be easier than the sensor's)."""
+        m, angles = self.m, tuple(self.angle_mask)
+        half = np.asarray(self.half_width, float)
+        if half.shape != (m,) or not np.all(np.isfinite(half)) or np.any(half <= 0):
+            return "half_width", self.half_width, f"must be {m} numbers > 0, one per component ({', '.join(self.names)})"
+        for i, (h, is_angle) in enumerate(zip(half, angles)):
+            if is_angle and h > np.pi:
+                return "half_width", self.half_width, (f"{self.names[i]}'s half-width {h:g} rad is more than π: the "
+                                                       "clutter region of an angle lies within ±π rad")
+        if self.center is not None:
+            c = np.asarray(self.center, float)
+            for i, is_angle in enumerate(angles):
+                if is_angle and (c[i] - half[i] < -np.pi - 1e-9 or c[i] + half[i] > np.pi + 1e-9):
+                    return "coverage", self.center, f"{self.names[i]} must lie within [−π, π] rad"
+        density = float(np.asarray(self.density, float))
+        if not np.isfinite(density) or density < 0:
+            return "density", self.density, "must be a number >= 0 (false alarms per unit volume)"
+        mean = float(np.asarray(self.mean_false_alarms(), float))
+        needed = self.capacity_needed(max_overflow)
+        if needed > self.max_returns:
+            return ("max_returns", self.max_returns,
+                    f"must be at least {needed}: with {mean:.3g} false alarms a scan on average, more than "
+                    f"{max_overflow:.1%} of the scans would hold more returns than {self.max_returns} (a capacity "
+                    f"of {self.capacity_needed():d} is passed once in a million scans; or narrow the region)")
+        return None
 
     def whitened_density(self) -> float:
         """λ·√det R: false alarms per unit volume of the whitened measurement space (R the true noise)."""

@@ -52,7 +52,7 @@ def declared_of(fc) -> dict:
         return dict(fc.declared)
     kinds = [KINDS[fc.kind]] + ([KINDS[fc.options["base"]]] if "base" in fc.options else [])
     declared = {n: p for k in reversed(kinds) for n, p in k.params.items() if n in fc.params}
-    if fc.kind in HARD_RULES:
+    if fc.kind in HARD_RULES:  # the base's numbers too: the association's choice has no gradient
         declared = {n: replace(p, tune=False) for n, p in declared.items()}
     return declared
 
