@@ -150,7 +150,7 @@ def plot_airborne(doc, folder: Path, formats=("png",)):
         ax.grid(True, which="both", alpha=0.3)
         _range_axis(ax, t, rng)
         ax.set_title(title, fontsize=9)
-        legend(fig, axes, "in brackets: the NEES averaged over the whole run")
+        legend(fig, axes, "in parentheses: each tracker's NEES averaged over the whole run ± its interval")
         save(plt, fig, folder, "nees", formats)
     windows = [w for w in doc.get("windows", []) if any(f"pointing[{w}]" in f.get("cdf", {}) for f in filters.values())]
     if windows:

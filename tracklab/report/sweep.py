@@ -12,7 +12,7 @@ import numpy as np
 from tracklab.intervals import percent, with_half_width
 from tracklab.output import atomic_folder
 from tracklab.report.document import write_json
-from tracklab.report.figures import formats_of, pyplot, save
+from tracklab.report.figures import formats_of, pyplot, save, styles
 from tracklab.report.tables import md_cell
 
 
@@ -82,7 +82,7 @@ def _write_sweep(exp, doc, tmp, figures):
     }
     write_json(tmp / "sweep.json", summary_only)
     if formats_of(figures) and not no_figures(doc):
-        _plot(doc, names, labels, tmp, formats_of(figures))
+        _plot({**doc, "name": exp.name}, names, labels, tmp, formats_of(figures))
     return rows
 
 def sweep_caption(doc) -> str:
@@ -143,15 +143,20 @@ def value_axis(ax, vals, positive):
     ax.ticklabel_format(axis="y", style="plain", useOffset=False)
 
 def _plot(doc, names, labels, folder, formats=("png",)):
-    """Per metric one figure, a panel per filter laid out in a grid (at most three across): 1-D
-    sweeps as curves with each point's confidence interval, 2-D sweeps as heatmaps with each
-    cell centred on its grid values. The NEES's consistent value (its degrees of freedom) is a
-    line on the curves and a white contour on the heatmaps."""
-    plt = pyplot()
+    """Per metric one figure. A 1-D sweep: every filter's curve on one shared axis, each point
+    with its confidence interval. A 2-D sweep: a heatmap per filter (at most three across) on one
+    colour scale shared by all, each cell centred on its grid values and labelled with its value,
+    the colour bar named in words and units. The matched point of scale-factor axes (every factor
+    1) is marked; the NEES's consistent value (its degrees of freedom) is a dashed line on the
+    curves and a white contour on the heatmaps."""
+    from matplotlib.colors import LogNorm, Normalize
 
+    plt = pyplot()
     axes_vals = [np.asarray(doc["axes"][n]) for n in names]
     titles, log = doc["titles"], doc["log"]
+    factors = set(doc.get("factors", ()))
     dof = doc.get("nees_dof")
+    level = percent(doc["points"][0]["stats"].get("level", 0.95)) if doc["points"] else "95 %"
     for metric, title in doc["metrics"]:
         # None (no healthy run at a point) -> NaN -> masked: left blank
         values = {l: np.ma.masked_invalid(np.array([p["stats"]["filters"][l]["summary"].get(metric)
@@ -160,55 +165,86 @@ def _plot(doc, names, labels, folder, formats=("png",)):
                              for p in doc["points"]], float) for l in labels}
         if all(v.mask.all() for v in values.values()):
             continue  # nothing to draw (e.g. no NEES in this world)
+        notes = []
         if any(np.ma.is_masked(v) for v in values.values()):
-            title += " — blank: no run without divergence"
-        probability = metric.startswith("p_")  # on one linear 0-1 scale for every filter, each cell labelled
-        positive = not probability and all(bool(np.all(v.compressed() > 0)) for v in values.values())
+            notes.append("blank: no run without divergence")
+        probability = metric.startswith("p_")  # on one linear 0-1 scale for every filter
+        every = np.concatenate([v.compressed() for v in values.values()])
+        positive = not probability and bool(np.all(every > 0))
         mark = dof if metric == "nees" and dof else None
+        if len(names) == 1:
+            fig, ax = plt.subplots(figsize=(7.5, 4.2), layout="constrained")
+            st = styles(labels, len(axes_vals[0]))
+            for l in labels:
+                ax.errorbar(axes_vals[0], values[l], yerr=np.where(np.isfinite(half[l]), half[l], 0.0), capsize=2,
+                            ms=4, label=l, color=st[l]["color"], ls=st[l]["ls"], marker=st[l]["marker"])
+            ax.set_xscale("log" if log[names[0]] else "linear")
+            if log[names[0]]:
+                from matplotlib.ticker import FuncFormatter
+
+                ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+            reach = [np.ma.filled(values[l] + np.nan_to_num(half[l]), np.nan) for l in labels]
+            reach += [np.ma.filled(values[l] - np.nan_to_num(half[l]), np.nan) for l in labels]
+            reach = np.concatenate(reach)
+            value_axis(ax, np.concatenate([reach[np.isfinite(reach) & ((reach > 0) | (not positive))]]
+                                          + ([[mark]] if mark else [])), positive)
+            if mark:
+                ax.axhline(mark, color="k", lw=0.8, ls="--", label=f"consistent ({mark})")
+            if names[0] in factors and axes_vals[0].min() <= 1.0 <= axes_vals[0].max():
+                ax.axvline(1.0, color="0.4", lw=0.8, ls=":", label="matched (factor 1)")
+            ax.set_xlabel(titles[names[0]])
+            ax.set_ylabel(title)
+            ax.grid(True, which="both", alpha=0.3)
+            ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
+            notes.append(f"bars: {level} confidence interval of each point")
+            ax.set_title(f"{doc.get('name', '')}: {title}" + "".join(f"; {n}" for n in notes), fontsize=9)
+            save(plt, fig, folder, f"sweep_{metric}", formats)
+            continue
         cols = min(len(labels), 3)
         rows = -(-len(labels) // cols)
-        fig, axs = plt.subplots(rows, cols, figsize=(4.6 * cols, 3.8 * rows), squeeze=False, layout="constrained")
+        fig, axs = plt.subplots(rows, cols, figsize=(4.8 * cols, 4.0 * rows), squeeze=False, layout="constrained")
+        lo, hi = float(every.min()), float(every.max())
+        norm = (Normalize(0.0, 1.0) if probability else LogNorm(lo, hi) if positive and hi > lo
+                else Normalize(lo, hi if hi > lo else lo + 1.0))
+        matched = [(i, j) for i, a in enumerate(axes_vals[0]) for j, b in enumerate(axes_vals[1])
+                   if names[0] in factors and names[1] in factors and a == 1.0 and b == 1.0]
         for ax, l in zip(axs.flat, labels):
-            vals = values[l]
-            if len(names) == 1:
-                ax.errorbar(axes_vals[0], vals, yerr=np.where(np.isfinite(half[l]), half[l], 0.0), fmt="o-", ms=4,
-                            capsize=2)
-                ax.set_xscale("log" if log[names[0]] else "linear")
-                value_axis(ax, np.concatenate([vals.compressed()] + ([[mark]] if mark else [])), positive)
-                if mark:
-                    ax.axhline(mark, color="k", lw=0.8, ls="--", label=f"consistent ({mark})")
-                    ax.legend(fontsize=7, loc="best")
-                ax.set_xlabel(titles[names[0]])
-                ax.set_ylabel(title, fontsize=8)
-                ax.grid(True, which="both", alpha=0.3)
-            else:
-                grid = vals.reshape(len(axes_vals[0]), len(axes_vals[1]))
-                shown = np.ma.log10(grid) if positive else grid
-                im = ax.pcolormesh(_edges(axes_vals[1], log[names[1]]), _edges(axes_vals[0], log[names[0]]), shown,
-                                   **({"vmin": 0.0, "vmax": 1.0} if probability else {}))
-                if probability:
-                    for (i, j), v in np.ndenumerate(grid):
-                        if not np.ma.is_masked(v):
-                            ax.text(axes_vals[1][j], axes_vals[0][i], f"{100 * v:.0f}%", ha="center", va="center",
-                                    fontsize=7, color="w" if v < 0.6 else "k")
-                if mark and len(axes_vals[0]) > 1 and len(axes_vals[1]) > 1:
-                    level = np.log10(mark) if positive else mark
-                    if np.nanmin(shown) < level < np.nanmax(shown):
-                        ax.contour(axes_vals[1], axes_vals[0], shown, levels=[level], colors="w", linewidths=1.5)
-                ax.set_xscale("log" if log[names[1]] else "linear")
-                ax.set_yscale("log" if log[names[0]] else "linear")
-                ax.set_xticks(axes_vals[1], [f"{v:g}" for v in axes_vals[1]], fontsize=7)
-                ax.set_yticks(axes_vals[0], [f"{v:g}" for v in axes_vals[0]], fontsize=7)
-                ax.minorticks_off()
-                ax.set_xlabel(titles[names[1]], fontsize=8)
-                ax.set_ylabel(titles[names[0]], fontsize=8)
-                cb = fig.colorbar(im, ax=ax, label=f"log10 {metric}" if positive else metric)
-                if mark:
-                    cb.ax.axhline(np.log10(mark) if positive else mark, color="w", lw=1.5)
+            grid = values[l].reshape(len(axes_vals[0]), len(axes_vals[1]))
+            im = ax.pcolormesh(_edges(axes_vals[1], log[names[1]]), _edges(axes_vals[0], log[names[0]]), grid,
+                               norm=norm)
+            for (i, j), v in np.ndenumerate(grid):
+                if not np.ma.is_masked(v):
+                    shade = norm(v)
+                    ax.text(axes_vals[1][j], axes_vals[0][i], f"{100 * v:.0f}%" if probability else f"{v:.3g}",
+                            ha="center", va="center", fontsize=7, color="w" if shade < 0.6 else "k")
+            for i, j in matched:
+                ax.plot(axes_vals[1][j], axes_vals[0][i], "s", ms=22, mfc="none", mec="r", mew=1.5)
+            if mark and len(axes_vals[0]) > 1 and len(axes_vals[1]) > 1 and np.nanmin(grid) < mark < np.nanmax(grid):
+                ax.contour(axes_vals[1], axes_vals[0], grid, levels=[mark], colors="w", linewidths=1.5)
+            ax.set_xscale("log" if log[names[1]] else "linear")
+            ax.set_yscale("log" if log[names[0]] else "linear")
+            ax.set_xticks(axes_vals[1], [f"{v:g}" for v in axes_vals[1]], fontsize=7)
+            ax.set_yticks(axes_vals[0], [f"{v:g}" for v in axes_vals[0]], fontsize=7)
+            ax.minorticks_off()
+            ax.set_xlabel(titles[names[1]], fontsize=8)
+            ax.set_ylabel(titles[names[0]], fontsize=8)
             ax.set_title(l, fontsize=9)
         for ax in list(axs.flat)[len(labels):]:
             ax.axis("off")
-        if mark and len(names) == 2:
-            title += f" — white line: consistent NEES = {mark}"
-        fig.suptitle(title, fontsize=10)
+        cb = fig.colorbar(im, ax=axs[:, -1].tolist() if cols > 1 else axs[:, 0].tolist(), label=title, shrink=0.9)
+        if isinstance(norm, LogNorm):  # plain numbers on a log colour bar (not 9×10⁰)
+            from matplotlib.ticker import FuncFormatter
+
+            plain = FuncFormatter(lambda v, _: f"{v:g}")
+            cb.ax.yaxis.set_major_formatter(plain)
+            if hi < 10 * lo:  # less than a decade: the minor ticks are the only labels
+                cb.ax.yaxis.set_minor_formatter(plain)
+                cb.ax.tick_params(which="minor", labelsize=7)
+        if mark:
+            cb.ax.axhline(mark, color="w", lw=1.5)
+            notes.append(f"white line: consistent NEES = {mark}")
+        if matched:
+            notes.append("red square: the matched point (every factor 1)")
+        fig.suptitle(f"{doc.get('name', '')}: {title}, one colour scale for every filter"
+                     + "".join(f"; {n}" for n in notes), fontsize=10)
         save(plt, fig, folder, f"sweep_{metric}", formats)

@@ -218,7 +218,8 @@ def sweep(exp, axes: list[Axis], runs=None, seed=None, block_points=None, chunk=
     doc_points = [{"values": dict(zip(names, map(float, v))), "stats": st} for v, st in zip(values, stats)]
     each = sorted({int(runs or at.runs) for at, _ in made})
     return {"axes": {a.name: a.values.tolist() for a in axes}, "titles": {a.name: _title(exp, a) for a in axes},
-            "log": {a.name: a.log for a in axes}, "points": doc_points, "wall_s": wall, "compile_s": compile_s,
+            "log": {a.name: a.log for a in axes}, "factors": [a.name for a in axes if a.path is None],
+            "points": doc_points, "wall_s": wall, "compile_s": compile_s,
             "runs": each[0] if len(each) == 1 else each, "programs": len(programs), "structural": structural,
             "separate": separate,
             "units": list(exp.units), "nees_dof": exp.nees_dof,
