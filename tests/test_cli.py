@@ -124,8 +124,13 @@ def test_run_exits_0_and_prints_the_table(valid_run):
     assert "Traceback" not in proc.stderr
     for label in LABELS:
         assert label in proc.stdout
-    assert "| filter | kind |" in proc.stdout
+    lines = proc.stdout.splitlines()
+    head = next(line for line in lines if line.startswith("filter "))  # the key columns, aligned
+    assert "RMSE pos (m)" in head and max(map(len, lines[lines.index(head):])) <= 160
+    assert all(len(line) <= 120 for line in lines[lines.index(head):lines.index(head) + 1 + len(LABELS)])
+    assert "table.md" in proc.stdout and "| filter | kind |" in (root / "out" / "table.md").read_text()
     assert "20 runs" in proc.stdout  # --runs overrides the file's 40
+    assert "compiling" not in proc.stderr and "running" not in proc.stderr  # not a terminal: no phases, no bar
 
 
 def test_run_writes_the_results_folder(valid_run):

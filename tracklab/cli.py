@@ -85,7 +85,9 @@ def _fraction(s):
 def cmd_run(args) -> int:
     from tracklab.config import MAX_RUNS, load_experiment
     from tracklab.output import check_results_folder
-    from tracklab.report.tables import markdown_table
+    from tracklab.intervals import percent
+    from tracklab.progress import Phases, wanted
+    from tracklab.report.tables import terminal_table
 
     exp = load_experiment(args.experiment)
     per_run = exp.samples_per_run  # steps; closed loops: radar samples or servo ticks
@@ -100,26 +102,33 @@ def cmd_run(args) -> int:
         runs = args.runs or exp.runs
     out = Path(args.out) if args.out else Path("results") / exp.name
     check_results_folder(out, args.experiment)  # refused as --out (exp.run names its argument out)
+    phases = Phases(exp.name, writes() and wanted(args.quiet))
+    figures = _figures(args)
 
     def progress(done, total):
         raise_if_interrupted()  # after each chunk: a Ctrl-C swallowed inside a callback still stops the run
-        if writes() and (sys.stderr.isatty() or done == total):
-            print(f"\r{exp.name}: {done}/{total} runs", end="\n" if done == total else "", file=sys.stderr, flush=True)
+        phases.progress(done, total)
+        if done >= total:
+            phases.phase(f"drawing the figures and writing {out}/" if figures else f"writing {out}/")
 
     extra = {"target_precision": target} if target is not None else {}
-    if writes():  # what would otherwise be minutes without a line (a DEKF trained first)
-        for line in exp.before_runs():
-            print(f"{exp.name}: {line}", file=sys.stderr, flush=True)
-    doc = exp.run(runs=runs, seed=args.seed, out=out, progress=progress, figures=_figures(args),
+    for line in exp.before_runs():  # what would otherwise be minutes without a line (a DEKF trained first)
+        phases.phase(line)
+    phases.phase("compiling the program (or loading it, compiled before)")
+    doc = exp.run(runs=runs, seed=args.seed, out=out, progress=progress, figures=figures,
                   precision="float32" if args.float32 else None, max_memory=args.max_memory, **extra)
     if doc is None:  # a process other than 0 of a multi-process run: process 0 writes and prints
         return 0
+    phases.done("done")
     print(f"# {exp.name}: {doc['runs']} runs x {exp.steps} steps, window {exp.window[0]}-{exp.window[1]}, "
           f"{doc['wall_s']:.1f} s wall, {doc['compile_s']:.1f} s of it compiling or loading the program")
     for label, info in (doc.get("training") or {}).items():  # before the runs, not in their wall time
         print(f"# {label}: trained first, {info['steps']} Adam steps in {info['wall_s']:.1f} s; held-out loss "
               f"{info['heldout_before']:.4g} -> {info['heldout_after']:.4g}")
-    print(markdown_table(doc), end="")
+    print(terminal_table(doc), end="")
+    base = next((f["paired"]["baseline"] for f in doc["filters"].values() if "paired" in f), None)
+    print(f"± : {percent(doc.get('level', 0.95))} interval over the runs" + (f"; Δ: paired difference to {base} on the "
+          "same runs" if base else "") + f". Every column, with its caption: {out}/table.md (and table.csv)")
     print(f"results written to {out}/")
     return 0
 
@@ -234,6 +243,7 @@ def cmd_sweep(args) -> int:
     from tracklab.output import check_results_folder
     from tracklab.config.paths import parse_grid
     from tracklab.studies.sweep import grid_points, sweep
+    from tracklab.progress import Phases, wanted
     from tracklab.report.sweep import no_figures, runs_text, write_sweep
 
     exp = load_experiment(args.experiment)
@@ -248,19 +258,23 @@ def cmd_sweep(args) -> int:
     out = Path(args.out) if args.out else Path("results") / f"{exp.name}_sweep"
     check_results_folder(out, args.experiment)
 
+    phases = Phases(f"{exp.name} sweep", writes() and wanted(args.quiet), unit="runs (all grid points)")
+
     def progress(done, total):
         raise_if_interrupted()
-        if writes() and (sys.stderr.isatty() or done == total):
-            print(f"\r{exp.name} sweep: {done}/{total} runs (all grid points)", end="\n" if done == total else "", file=sys.stderr, flush=True)
+        phases.progress(done, total)
 
+    phases.phase("compiling the grid's programs (or loading them, compiled before)")
     doc = sweep(exp, axes, runs=args.runs, progress=progress, max_memory=args.max_memory,  # checks grid and memory first
                 log=lambda line: writes() and print(f"{exp.name} sweep: {line}", file=sys.stderr, flush=True))
+    phases.phase(f"drawing the figures and writing {out}/" if _figures(args) else f"writing {out}/")
     if not writes():  # process 0 of a multi-process run writes and prints
         return 0
     n = grid_points(axes)
     print(f"# {exp.name}: {n} grid points x {runs_text(doc['runs'])} runs, {doc['wall_s']:.1f} s wall, "
           f"{doc['compile_s']:.1f} s of it compiling or loading the program")
     write_sweep(exp, doc, out, figures=_figures(args))
+    phases.done("done")
     print((out / "table.md").read_text(), end="")
     if not args.no_figures and no_figures(doc):
         print(no_figures(doc))
@@ -320,6 +334,8 @@ def build_parser():
     r.add_argument("--seed", type=_seed, help="random seed (default: the file's)")
     r.add_argument("--out", help="results folder (default: results/<name>/)")
     r.add_argument("--no-figures", action="store_true", help="skip the figures")
+    r.add_argument("--quiet", action="store_true", help="no phases or progress bar on stderr (none either when "
+                                                        "stderr is not a terminal)")
     r.add_argument("--format", type=_formats, default=("png",), metavar="FMT",
                    help="figure formats, comma-separated: png (150 dpi), pdf, svg (vector, for papers); default png")
     r.add_argument("--float32", action="store_true", help="single precision (as precision = \"float32\")")
@@ -357,6 +373,7 @@ def build_parser():
     sw.add_argument("--runs", type=_positive_int, help="Monte-Carlo runs per grid point (default: the file's)")
     sw.add_argument("--out", help="folder (default: results/<name>_sweep/)")
     sw.add_argument("--no-figures", action="store_true")
+    sw.add_argument("--quiet", action="store_true", help="no phases or progress bar on stderr")
     sw.add_argument("--format", type=_formats, default=("png",), metavar="FMT", help="figure formats: png, pdf, svg")
     sw.add_argument("--max-memory", type=_size, help="refuse a sweep needing more (default: this machine's memory)")
     sw.set_defaults(func=cmd_sweep)

@@ -213,6 +213,35 @@ def markdown_table(stats) -> str:
     caption = table_caption(stats)
     return "\n".join(lines) + "\n" + (f"\n{caption}\n" if caption else "")
 
+TERMINAL_KEYS = ("lost tracks", "Δ lost", "RMSE pos", "Δ RMSE pos", "RMSE/PCRLB", "NEES", "max tracking error",
+                 "Δ max tracking error", "diverged")  # the columns the terminal shows, in this order of precedence
+
+
+def terminal_table(stats, width: int = 120) -> str:
+    """The table as the terminal shows it: the key columns (``TERMINAL_KEYS``, as many as fit in
+    ``width`` characters, in the table's order), aligned, labels cut to 24 characters; the whole
+    table is ``table.md`` and ``table.csv``."""
+    header, rows = table_rows(stats)
+    rank = {i: next((r for r, k in enumerate(TERMINAL_KEYS) if h.startswith(k)), None) for i, h in enumerate(header)}
+    keys = sorted((i for i, r in rank.items() if r is not None), key=lambda i: rank[i])
+    cut = lambda text, n: text if len(text) <= n else text[:n - 1] + "…"  # noqa: E731
+    labels = [cut(str(r[0]), 24) for r in rows]
+    chosen = []
+    for i in keys:
+        trial = sorted(chosen + [i])
+        widths = [max(len("filter"), *map(len, labels))] + [max(len(header[j]), *(len(str(r[j])) for r in rows))
+                                                             for j in trial]
+        if sum(widths) + 2 * len(trial) <= width:
+            chosen = trial
+    widths = [max(len("filter"), *map(len, labels))] + [max(len(header[j]), *(len(str(r[j])) for r in rows))
+                                                         for j in chosen]
+    line = lambda cells: "  ".join(c.ljust(w) if k == 0 else c.rjust(w)  # noqa: E731
+                                   for k, (c, w) in enumerate(zip(cells, widths))).rstrip()
+    out = [line(["filter"] + [header[j] for j in chosen])]
+    out += [line([labels[n]] + [str(r[j]) for j in chosen]) for n, r in enumerate(rows)]
+    return "\n".join(out) + "\n"
+
+
 def csv_table(stats) -> str:
     """Every column of the table as numbers: a value's half-width in ``<key>_hw``, the diverged
     fraction's interval in ``diverged_lo``/``diverged_hi``, the paired differences to the
