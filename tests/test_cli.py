@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
@@ -10,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from tracklab.report.document import read_results
 
 STEPS = 10
 WINDOW = [3, 10]
@@ -154,7 +154,7 @@ def test_run_writes_the_results_folder(valid_run):
 def test_stats_json_contract(valid_run):
     root, proc = valid_run
     assert proc.returncode == 0, proc.stderr
-    stats = json.loads((root / "out" / "stats.json").read_text())
+    stats = read_results(root / "out")
     assert isinstance(stats["filters"], dict)
     assert list(stats["filters"]) == list(LABELS)
     assert stats["runs"] == 20 and stats["steps"] == STEPS
@@ -183,7 +183,7 @@ def test_stats_json_contract(valid_run):
 
 def test_series_has_every_summary_quantity(valid_run):
     root, _ = valid_run
-    stats = json.loads((root / "out" / "stats.json").read_text())
+    stats = read_results(root / "out")
     for f in stats["filters"].values():
         for key in SUMMARY_KEYS:
             assert len(f["series"][key]) == STEPS, key
@@ -195,7 +195,7 @@ def test_series_has_every_summary_quantity(valid_run):
 def test_seed_reproducible_and_changes_numbers(valid_run, tmp_path):
     root, proc = valid_run
     assert proc.returncode == 0, proc.stderr
-    first = numbers(json.loads((root / "out" / "stats.json").read_text()))  # the file's seed, 0
+    first = numbers(read_results(root / "out"))  # the file's seed, 0
     # the two runs are independent processes: run them side by side
     again, other = tracklab_parallel(
         [("run", root / "small.toml", "--runs", 20, "--seed", 0, "--out", "same", "--no-figures"),
@@ -204,8 +204,8 @@ def test_seed_reproducible_and_changes_numbers(valid_run, tmp_path):
     )
     assert again.returncode == 0, again.stderr
     assert other.returncode == 0, other.stderr
-    assert numbers(json.loads((tmp_path / "same" / "stats.json").read_text())) == first
-    changed = numbers(json.loads((tmp_path / "other" / "stats.json").read_text()))
+    assert numbers(read_results(tmp_path / "same")) == first
+    changed = numbers(read_results(tmp_path / "other"))
     for label in LABELS:
         assert changed[label]["summary"]["rmse_pos"] != first[label]["summary"]["rmse_pos"]
         assert changed[label]["series"]["rmse_pos"] != first[label]["series"]["rmse_pos"]
@@ -363,7 +363,7 @@ label = "KF"
                     cwd=cwd)
     assert proc.returncode == 0, proc.stderr
     assert "KF" in proc.stdout
-    stats = json.loads((cwd / "res" / "stats.json").read_text())
+    stats = read_results(cwd / "res")
     f = stats["filters"]["KF"]
     assert f["kind"] == "kf" and stats["steps"] == 8
     assert len(f["series"]["rmse_pos"]) == 8

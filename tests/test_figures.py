@@ -2,13 +2,13 @@
 outside the canvas, every filter in the legend, time axes and value axes labelled with their
 units, and what the notes say is what is drawn."""
 
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from tracklab.report import airborne, figures, servo, sweep
+from tracklab.report.document import read_results
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "results"
@@ -57,7 +57,7 @@ def _check(fig, stem, labels):
 
 
 def _doc(name):
-    return json.loads((RESULTS / name / "stats.json").read_text())
+    return read_results(RESULTS / name)
 
 
 @pytest.mark.parametrize("name, expected", [

@@ -12,6 +12,7 @@ from tracklab.montecarlo.statistics import statistics
 from tracklab.models import cv
 
 import test_closed_loop_studies as studies  # the closed loops' tiny files
+from tracklab.report.document import read_results
 
 LINEAR = """
 [experiment]
@@ -166,9 +167,7 @@ def test_auto_runs_from_the_command_line(tmp_path, capsys):
 
     p = write(tmp_path, LINEAR.replace("chunk = 20", "chunk = 100"))
     assert main(["run", str(p), "--precision", "0.05", "--runs", "5000", "--no-figures", "--out", str(tmp_path / "o")]) == 0
-    import json
-
-    doc = json.loads((tmp_path / "o" / "stats.json").read_text())
+    doc = read_results(tmp_path / "o")
     assert doc["auto"]["reached"] and doc["runs"] < 5000 and doc["runs"] % 100 == 0
     assert "Runs chosen automatically" in (tmp_path / "o" / "table.md").read_text()
     with pytest.raises(SystemExit) as e:

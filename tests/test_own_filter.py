@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 import tracklab
+from tracklab.report.document import read_results
 from tracklab import FilterSpec, Out
 from tracklab.cli import main
 from tracklab.montecarlo.statistics import statistics
@@ -86,7 +87,7 @@ def test_a_filter_giving_only_x_and_P_runs_with_empty_NIS_and_prediction_columns
     for k in ("nis", "nis_in_bounds", "pred_err_rms", "pred_err_max", "pred_err_rms_x"):
         assert not np.isfinite(mine[k]) and np.isfinite(ref[k]), k
     doc = exp.run(out=tmp_path / "out", figures=False)  # the same program: nothing compiles again
-    stats = json.loads((tmp_path / "out" / "stats.json").read_text())
+    stats = read_results(tmp_path / "out")
     assert stats["filters"]["x and P only"]["summary"]["nis"] is None
     assert stats["filters"]["own, from Python"]["params"] == {"accel_var": 1.0, "r": [1e4, 9e-6]}
     assert stats["filters"]["CMKF"]["params"]["q"] == 1.0

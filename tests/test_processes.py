@@ -3,7 +3,6 @@ over localhost, give the statistics of one process in chunks of another size (tr
 clutter: every sum, the track losses, by error and by existence, and their paired differences
 among them); only process 0 writes and prints."""
 
-import json
 import os
 import re
 import socket
@@ -15,6 +14,7 @@ import pytest
 
 from tracklab import processes
 from tracklab.config import load_experiment
+from tracklab.report.document import read_results
 
 from test_cli import _command
 from test_clutter import CLUTTER_IPDA
@@ -46,7 +46,11 @@ def _numbers(a, b, where):
     """Every number of ``a`` equals ``b``'s to 1e-12 (relative): the chunk-size tests' tolerance; in
     a series, relative to its largest entry (a mean error near zero at one step is a difference of
     sums whose rounding is that of the sums)."""
-    if isinstance(a, list) and a and all(isinstance(x, float) for x in a):
+    if isinstance(a, np.ndarray):  # a series of series.npz
+        assert isinstance(b, np.ndarray) and a.shape == b.shape, where
+        scale = float(np.nanmax(np.abs(a))) if np.isfinite(a).any() else 0.0
+        np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-12 * scale + 1e-300, err_msg=where)
+    elif isinstance(a, list) and a and all(isinstance(x, float) for x in a):
         assert len(a) == len(b), where
         scale = float(np.nanmax(np.abs(a))) if np.any(np.isfinite(a)) else 0.0
         np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-12 * scale + 1e-300, err_msg=where)
@@ -85,8 +89,8 @@ def test_two_processes_give_the_statistics_of_one(tmp_path, xla_flags):
     one = load_experiment(path)
     one.chunk = 16  # one process (this one, with the same flags) in chunks of another size
     one.run(out=tmp_path / "one", figures=False)
-    a = json.loads((tmp_path / "one" / "stats.json").read_text())
-    b = json.loads((tmp_path / "two" / "stats.json").read_text())
+    a = read_results(tmp_path / "one")
+    b = read_results(tmp_path / "two")
     assert a["runs"] == b["runs"] == 50
     for label in a["filters"]:
         for part in ("summary", "half_width", "intervals", "paired", "cdf", "series"):

@@ -6,6 +6,7 @@ import pytest
 from jax.scipy.linalg import expm
 
 from tracklab.worlds.servo import AzimuthAxis, TransferFunction, closed_position_loop, discretise, sine_target, track
+from tracklab.report.document import read_results
 
 AXIS = AzimuthAxis()
 L = AXIS.open_position_loop()
@@ -108,7 +109,6 @@ def test_perfect_feed_forward_collapses_the_on_axis_error():
 
 def test_servo_experiment_file_runs_and_reports_the_paper_metrics(tmp_path):
     """A [servo] experiment: one table row per case; the perfect estimator bounds the on-axis error."""
-    import json
     import subprocess
     import sys
 
@@ -145,7 +145,7 @@ estimator = "perfect"
     proc = subprocess.run([sys.executable, "-m", "tracklab.cli", "run", str(tmp_path / "s.toml"), "--out", str(tmp_path / "out")],
                           capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
-    doc = json.loads((tmp_path / "out" / "stats.json").read_text())
+    doc = read_results(tmp_path / "out")
     s = {k: v["summary"] for k, v in doc["filters"].items()}
     assert s["on_axis, perfect"]["max_track_err"] < s["on_axis, KF"]["max_track_err"] < s["double_loop"]["max_track_err"]
     assert 0 < s["on_axis, KF"]["max_rate_err"] < 2.0
@@ -212,8 +212,6 @@ def test_a_dekf_trained_first_is_announced_and_its_training_timed(tmp_path, monk
     anything runs (minutes on a real file, with no run finished to report) and prints the training's
     steps, seconds and held-out loss after the runs' line, whose wall time is the runs' alone;
     stats.json keeps them."""
-    import json
-
     from test_cli import in_process
 
     (tmp_path / "s.toml").write_text("""
@@ -246,6 +244,6 @@ estimator = "DEKF"
     lines = proc.stdout.splitlines()
     assert lines[0].startswith("# servo_trained: 2 runs x 300 steps") and lines[1].startswith(
         "# DEKF: trained first, 3 Adam steps in ")
-    info = json.loads((tmp_path / "out" / "stats.json").read_text())["training"]["DEKF"]
+    info = read_results(tmp_path / "out")["training"]["DEKF"]
     assert info["steps"] == 3 and len(info["loss_history"]) == 3 and info["wall_s"] > 0
     assert f"held-out loss {info['heldout_before']:.4g} -> {info['heldout_after']:.4g}" in lines[1]

@@ -112,8 +112,9 @@ def cmd_run(args) -> int:
             phases.phase(f"drawing the figures and writing {out}/" if figures else f"writing {out}/")
 
     extra = {"target_precision": target} if target is not None else {}
-    for line in exp.before_runs():  # what would otherwise be minutes without a line (a DEKF trained first)
-        phases.phase(line)
+    for line in exp.before_runs():  # minutes without a line otherwise (a DEKF trained first): said in a log too
+        if writes() and not args.quiet:
+            print(f"{exp.name}: {line}", file=sys.stderr, flush=True)
     phases.phase("compiling the program (or loading it, compiled before)")
     doc = exp.run(runs=runs, seed=args.seed, out=out, progress=progress, figures=figures,
                   precision="float32" if args.float32 else None, max_memory=args.max_memory, **extra)

@@ -9,7 +9,7 @@ tracklab writes only where it may, and removes only what it wrote:
   header and ``"files"``, the names written), and only the files it lists count as
   tracklab's: a file of the user's dropped in, a figure's name included, makes it a folder
   tracklab did not write. A folder an older tracklab wrote has no manifest: there the names
-  tracklab writes (``RESULTS_FILES`` and ``*.png``) count. Anything else (a folder of the
+  tracklab writes (``RESULTS_FILES`` and the figures, ``*.png``, ``*.pdf``, ``*.svg``) count. Anything else (a folder of the
   user's, the working folder, the experiment's own folder) is refused with one line before
   anything compiles, so the replacement below never removes a file tracklab did not write;
 * a tuned experiment file (``tune --out``) goes to a new path or replaces a file that
@@ -56,7 +56,8 @@ from tracklab.errors import ConfigError
 from tracklab.interrupts import note_written, raise_if_interrupted, sigint_blocked
 
 RESULTS_DOCUMENTS = ("stats.json", "sweep.json", "tune.json")  # the file that marks a tracklab results folder
-RESULTS_FILES = frozenset(RESULTS_DOCUMENTS + ("table.md", "table.csv", "tune.log"))  # and the figures, *.png
+RESULTS_FILES = frozenset(RESULTS_DOCUMENTS + ("series.npz", "table.md", "table.csv", "tune.log"))  # and figures
+FIGURE_SUFFIXES = (".png", ".pdf", ".svg")  # the figures' formats (report.figures.FORMATS)
 MANIFEST = ".tracklab-files"  # in every results folder: the names of the files tracklab wrote there
 HEADER_KEY = "tracklab_version"  # the first key of every document tracklab writes
 TUNED_HEADER = "# written by tracklab tune"  # the first line of a tuned experiment file
@@ -133,7 +134,7 @@ def _not_written(folder: Path, entries, listed) -> list[str]:
         elif listed is not None:
             named = e in listed
         else:
-            named = e in RESULTS_FILES or e.endswith(".png")
+            named = e in RESULTS_FILES or e.endswith(FIGURE_SUFFIXES)
         return named and _plain_file(folder / e)
 
     return [e for e in entries if not ours(e)]

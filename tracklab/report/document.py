@@ -1,6 +1,9 @@
-"""Results folders: stats.json (compact JSON, tracklab's header first), table.md and table.csv,
+"""Results folders: stats.json (compact JSON, tracklab's header first: the summaries, intervals
+and metadata a reader or ``tracklab table`` needs), series.npz (every per-step series, run 0's
+example and other long arrays of the document, compressed binary), table.md and table.csv,
 written into a temporary folder that replaces the destination in one step when complete
-(``tracklab.output.atomic_folder``); the series a document keeps (``series_stride``)."""
+(``tracklab.output.atomic_folder``); the series a document keeps (``series_stride``).
+``read_results(folder)`` gives back the whole document, as ``run`` returned it."""
 
 from __future__ import annotations
 
@@ -24,7 +27,7 @@ def _jsonable(obj):
         return _jsonable(obj.tolist())
     return stored(obj)
 
-MAX_SERIES_POINTS = 2000  # longer runs are stored (and drawn) every `stride` steps
+MAX_SERIES_POINTS = 1000  # longer runs are stored (and drawn) every `stride` steps (a figure is ~1400 px wide)
 
 def series_stride(steps):
     return max(1, -(-steps // MAX_SERIES_POINTS))
@@ -64,8 +67,80 @@ def write_json(path: Path, doc):
     doc = {HEADER_KEY: __version__} | dict(doc)
     path.write_text(json.dumps(_jsonable(doc), separators=(",", ":"), allow_nan=False) + "\n")
 
+SERIES_FILE = "series.npz"
+SERIES_MARK = "$series"  # in stats.json, where an array of series.npz belongs: {"$series": its key}
+LONGEST_INLINE = 32  # a list of numbers longer than this goes to series.npz
+
+
+def _as_numbers(obj):
+    """A (nested) list of numbers and None as a float array (None: NaN); None if it is not one."""
+    def clean(v):
+        if isinstance(v, (list, tuple)):
+            return [clean(x) for x in v]
+        if v is None:
+            return np.nan
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+            raise TypeError
+        return v
+
+    try:
+        a = np.asarray(clean(list(obj)) if not isinstance(obj, np.ndarray) else obj, dtype=float)
+    except (TypeError, ValueError):
+        return None
+    return a
+
+
+def split_series(doc) -> tuple[dict, dict]:
+    """(the document with every long array replaced by a mark, {key: array}): what stats.json and
+    series.npz hold. A key is the array's path in the document, as JSON."""
+    arrays = {}
+
+    def walk(obj, path):
+        if isinstance(obj, dict):
+            return {k: walk(v, path + [k]) for k, v in obj.items()}
+        if isinstance(obj, np.ndarray) and obj.ndim == 0:
+            return obj.item()
+        if isinstance(obj, (list, tuple, np.ndarray)):
+            a = _as_numbers(obj) if len(obj) > LONGEST_INLINE or np.ndim(obj) > 1 else None
+            if a is not None and a.size > LONGEST_INLINE:
+                key = json.dumps(path, ensure_ascii=False)
+                arrays[key] = a
+                return {SERIES_MARK: key}
+            return [walk(v, path + [i]) for i, v in enumerate(obj)]
+        return obj
+
+    return walk(doc, []), arrays
+
+
+def read_results(folder) -> dict:
+    """The statistics document of a results folder, whole: stats.json with the arrays of
+    series.npz back in their places (NumPy arrays, NaN where a value is missing)."""
+    folder = Path(folder)
+    doc = json.loads((folder / "stats.json").read_text())
+    path = folder / SERIES_FILE
+    if not path.is_file():
+        return doc
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+
+    def walk(obj):
+        if isinstance(obj, dict):
+            if set(obj) == {SERIES_MARK}:
+                return arrays[obj[SERIES_MARK]]
+            return {k: walk(v) for k, v in obj.items()}
+        if isinstance(obj, list):
+            return [walk(v) for v in obj]
+        return obj
+
+    return walk(doc)
+
+
 def write_tables(folder: Path, doc, table_md=None):
-    """stats.json, table.md (``table_md``, default the one-row-per-filter table) and table.csv."""
-    write_json(folder / "stats.json", doc)
+    """stats.json with series.npz beside it (``split_series``), table.md (``table_md``, default the
+    one-row-per-filter table) and table.csv."""
+    lean, arrays = split_series(doc)
+    write_json(folder / "stats.json", lean)
+    if arrays:
+        np.savez_compressed(folder / SERIES_FILE, **arrays)
     (folder / "table.md").write_text(markdown_table(doc) if table_md is None else table_md)
     (folder / "table.csv").write_text(csv_table(doc))
