@@ -58,7 +58,7 @@ def test_the_python_snippets_run(tmp_path, page):
 
 def test_the_toml_snippets_are_experiment_files_and_the_shell_snippets_run(tmp_path):
     """Every TOML snippet is a valid experiment file (the getting-started one runs); every
-    `tracklab` line of a shell snippet runs, with 20 runs and no figures (pip lines are what
+    `tracklab` line of a shell snippet runs, with 200 runs and no figures (pip lines are what
     installing does)."""
     from tracklab.config import load_experiment
 
@@ -85,6 +85,6 @@ def test_the_toml_snippets_are_experiment_files_and_the_shell_snippets_run(tmp_p
     for i, command in enumerate(commands):
         args = shlex.split(command)[1:]
         if args[0] in ("run", "sweep"):
-            args += ["--runs", "20", "--no-figures", "--out", str(where / f"out{i}")]
+            args += ["--runs", "200", "--no-figures", "--out", str(where / f"out{i}")]
         out = subprocess.run([*_command(), *args], cwd=where, capture_output=True, text=True, timeout=600)
         assert out.returncode == 0, (command, out.stderr[-3000:])

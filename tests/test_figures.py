@@ -63,10 +63,8 @@ def _doc(name):
 @pytest.mark.parametrize("name, expected", [
     ("lidar_crossing", {"rmse", "rmse_axes", "mean_error", "nees", "nis", "pred_error", "error_cdf", "run0",
                         "run0_error", "track"}),
-    ("error_space_overflight", {"pred_error", "rmse"}),  # named prediction windows
     ("clutter_cv", {"track_loss", "rmse", "run0"}),  # tracking in clutter
-    ("lidar_real_flight", {"track"}),  # a recorded flight
-])
+])  # (named prediction windows: the next test, on paper 004's overflight)
 def test_tracking_figures(drawn, name, expected):
     doc = _doc(name)
     figures.plot_figures(doc, Path("unused"))
@@ -92,6 +90,8 @@ def test_named_windows_and_manoeuvres_are_shaded_and_named(drawn):
     figures.plot_figures(doc, Path("unused"))
     names = {t.get_text() for t in _texts(drawn["pred_error"])}
     assert "60-90 s" in names
+    for stem in ("pred_error", "rmse"):
+        _check(drawn[stem], stem, list(doc["filters"]))
     doc["experiment"]["scenario"] = {"kind": "manoeuvre", "segments": [{"duration": 30.0},
                                                                       {"duration": 20.0, "turn_g": 4.0}]}
     assert figures.manoeuvre_spans(doc) == {"4 g turn": [30.0, 50.0]}

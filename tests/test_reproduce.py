@@ -160,6 +160,6 @@ def test_table_shows_no_statistic_of_a_filter_with_no_healthy_run(tmp_path, monk
         assert proc.returncode == 0 and not proc.stderr, proc.stderr
         rows = {c[1]: c for c in (_cells(line, fmt) for line in proc.stdout.splitlines()) if len(c) > 16}
         for label in ("numbers", "written"):
-            assert rows[label][:3] == ["r", label, "m"] and rows[label][14:17] == ["8", "8", "1.5"], (fmt, rows[label])
+            assert rows[label][:3] == ["r", label, "m, m/s"] and rows[label][14:17] == ["8", "8", "1.5"], (fmt, rows[label])
             assert all(c in ("—", "") for c in rows[label][3:14] + rows[label][17:]), (fmt, rows[label])
         assert rows["healthy"][3].startswith("12.5") and rows["healthy"][14] == "0", (fmt, rows["healthy"])

@@ -30,8 +30,8 @@ from tracklab.report.tables import md_cell
 from tracklab.studies.files import check_tune, run_study
 from tracklab.studies.sweep import check_sweep
 
-METRICS = {  # titles without units: the "unit" column gives each row's (m, or deg for a mount)
-    "unit": ("unit", "{}"),
+METRICS = {  # titles without units: the "units" column gives each row's (``row_units``)
+    "unit": ("units", "{}"),
     "rmse_pos": ("RMSE pos", "auto"),
     "rmse_vel": ("RMSE vel", "auto"),
     "max_err_pos": ("max err pos", "auto"),
@@ -110,6 +110,18 @@ def no_healthy_run(summary) -> bool:
     return _number(runs) and _number(diverged) and runs > 0 and diverged >= runs
 
 
+def row_units(doc, summary) -> str:
+    """What a row's numbers are in: the RMSE columns' units (an airborne file's are its pointing
+    and line-of-sight-rate errors), or a servo file's minutes and seconds of arc."""
+    units = doc.get("units", ["m"])
+    pos, vel = (list(units) + ["?"])[:2] if len(units) > 1 else (units[0], f"{units[0]}/s")
+    if summary.get("rmse_pos") is None and summary.get("max_track_err") is not None:
+        return "′ (max err), ″ (random err)"
+    if "nominal_range" in doc:
+        return f"{pos} (pointing), {vel} (LOS rate)"
+    return f"{pos}, {vel}"
+
+
 def combined_rows(folders, metrics=DEFAULT_METRICS, docs=None, half_widths=None):
     """One row per filter of every folder: [folder, label, value per metric]; ``half_widths``, a
     list, receives each row's half-widths per metric (None where the folder holds none). A filter
@@ -117,7 +129,7 @@ def combined_rows(folders, metrics=DEFAULT_METRICS, docs=None, half_widths=None)
     rows = []
     for folder, doc in zip(folders, docs or [read_stats(f) for f in folders]):
         for label, f in doc["filters"].items():
-            values = dict(f["summary"], wall_s=doc.get("wall_s"), unit=doc.get("units", ["m"])[0])
+            values = dict(f["summary"], wall_s=doc.get("wall_s"), unit=row_units(doc, f["summary"]))
             none = no_healthy_run(f["summary"])
             shown = [m for m in metrics if not none or m in FACTS]
             rows.append([Path(folder).name, label] + [values.get(m) if m in shown else None for m in metrics])

@@ -76,7 +76,7 @@ def parse_grid(spec: str) -> Axis:
                              "section[LABEL].field)")
         if not 0 < lo <= hi:
             raise ValueError("scale factors need 0 < LO <= HI")
-        return Axis(key, np.geomspace(lo, hi, n))
+        return Axis(key, _tidy(np.geomspace(lo, hi, n)))
     p = PATH_RE.match(key)
     if not p:
         raise ValueError("PATH must be section.field or section[LABEL].field, e.g. sensor.sigma_r or "
@@ -85,10 +85,15 @@ def parse_grid(spec: str) -> Axis:
     if spacing == "log":
         if not 0 < lo <= hi:
             raise ValueError("a log grid needs 0 < LO <= HI")
-        return Axis(key, np.geomspace(lo, hi, n), path, True)
+        return Axis(key, _tidy(np.geomspace(lo, hi, n)), path, True)
     if lo > hi:
         raise ValueError("needs LO <= HI")
-    return Axis(key, np.linspace(lo, hi, n), path, False)
+    return Axis(key, _tidy(np.linspace(lo, hi, n)), path, False)
+
+
+def _tidy(values) -> np.ndarray:
+    """Grid values to 12 significant digits: 0.8, not linspace's 0.7999999999999999."""
+    return np.array([float(f"{v:.12g}") for v in values])
 
 
 def entry_label(section, table):
