@@ -65,8 +65,9 @@ def formats_of(figures) -> tuple:
 
 def save(plt, fig, folder: Path, stem: str, formats=("png",)):
     """``fig`` written as ``folder/stem.<format>`` for each format, then closed. A PNG is drawn at
-    ``DPI`` and stored with a palette of 64 colours (a line plot's few colours and their
-    anti-aliasing; a third of the size of full colour, the same to the eye)."""
+    ``DPI`` and stored with a palette of 256 colours (an octree's: a plot's few colours, their
+    anti-aliasing and a colour bar's steps; a third of the size of full colour, the same to the
+    eye, and no slower to write)."""
     import io
 
     from PIL import Image
@@ -77,8 +78,8 @@ def save(plt, fig, folder: Path, stem: str, formats=("png",)):
             continue
         buf = io.BytesIO()
         fig.savefig(buf, format="png", dpi=DPI)
-        image = Image.open(buf).convert("RGB").quantize(colors=64, method=Image.Quantize.MEDIANCUT)
-        image.save(Path(folder) / f"{stem}.png", optimize=True, dpi=(DPI, DPI))
+        image = Image.open(buf).convert("RGB").quantize(colors=256, method=Image.Quantize.FASTOCTREE)
+        image.save(Path(folder) / f"{stem}.png", dpi=(DPI, DPI))
     plt.close(fig)
 
 
