@@ -27,7 +27,8 @@ UNITS = {"sigma_r": "m", "sigma": "m", "sigma_angle": "rad", "sigma_az": "rad", 
          "noise": "arcsec", "settle": "s", "accel_ff": "s", "turn_g": "g", "own_speed": "m/s", "target_speed": "m/s",
          "target_range": "m", "singer_sigma": "m/s²", "singer_tau": "s", "angle": "mrad", "range": "m",
          "velocity": "m/s", "pointing": "mrad", "los_rate": "mrad/s", "range_rate": "m/s", "half_angle": "deg",
-         "axis_elevation": "deg", "tracking_index": "", "p_detect": "", "snr": "dB"}
+         "axis_elevation": "deg", "tracking_index": "", "p_detect": "", "snr": "dB",
+         "clutter_density": "per unit measurement volume"}
 
 
 @dataclass(frozen=True)

@@ -65,16 +65,18 @@ def formats_of(figures) -> tuple:
 
 def save(plt, fig, folder: Path, stem: str, formats=("png",)):
     """``fig`` written as ``folder/stem.<format>`` for each format, then closed. A PNG is drawn at
-    ``DPI`` and stored with a palette of 256 colours (an octree's: a plot's few colours, their
-    anti-aliasing and a colour bar's steps; a third of the size of full colour, the same to the
-    eye, and no slower to write)."""
+    ``DPI``; a line plot is stored with a palette of 256 colours (an octree's: its few colours and
+    their anti-aliasing; a third of the size of full colour, the same to the eye, no slower to
+    write), a figure with a colour scale (a heatmap) in full colour, so that its scale stays smooth."""
     import io
 
+    from matplotlib.collections import QuadMesh
     from PIL import Image
 
+    scaled = any(isinstance(c, QuadMesh) for ax in fig.axes for c in ax.collections) or any(ax.images for ax in fig.axes)
     for f in formats:
-        if f != "png":
-            fig.savefig(Path(folder) / f"{stem}.{f}")
+        if f != "png" or scaled:
+            fig.savefig(Path(folder) / f"{stem}.{f}", dpi=DPI if f == "png" else None)
             continue
         buf = io.BytesIO()
         fig.savefig(buf, format="png", dpi=DPI)
