@@ -451,8 +451,8 @@ def _consistency(ctx, key, ylabel, dof):
         ax.set_ylabel(ylabel if g == 0 else ylabel.split(" (")[0])
         ax.grid(True, which="both", alpha=0.3)
     axs[-1, 0].set_xlabel("time (s)")
-    legend(fig, axs, "; ".join([n if isinstance(n, str) else coincide_note([n]) for n in notes]
-                               + ([windows_note(doc, t)] if windows_note(doc, t) else [])))
+    legend(fig, axs, "; ".join(filter(None, [n if isinstance(n, str) else coincide_note([n]) for n in notes]
+                                      + [windows_note(doc, t)])))
     save(ctx["plt"], fig, ctx["folder"], key, ctx["formats"])
 
 

@@ -150,8 +150,10 @@ def _plot(doc, names, labels, folder, formats=("png",)):
     1) is marked; the NEES's consistent value (its degrees of freedom) is a dashed line on the
     curves and a white contour on the heatmaps."""
     from matplotlib.colors import LogNorm, Normalize
+    from matplotlib.ticker import FuncFormatter
 
     plt = pyplot()
+    plain = FuncFormatter(lambda v, _: f"{v:g}")  # plain numbers on a log scale (0.01, not 10⁻²)
     axes_vals = [np.asarray(doc["axes"][n]) for n in names]
     titles, log = doc["titles"], doc["log"]
     factors = set(doc.get("factors", ()))
@@ -180,9 +182,7 @@ def _plot(doc, names, labels, folder, formats=("png",)):
                             ms=4, label=l, color=st[l]["color"], ls=st[l]["ls"], marker=st[l]["marker"])
             ax.set_xscale("log" if log[names[0]] else "linear")
             if log[names[0]]:
-                from matplotlib.ticker import FuncFormatter
-
-                ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+                ax.xaxis.set_major_formatter(plain)
             reach = [np.ma.filled(values[l] + np.nan_to_num(half[l]), np.nan) for l in labels]
             reach += [np.ma.filled(values[l] - np.nan_to_num(half[l]), np.nan) for l in labels]
             reach = np.concatenate(reach)
@@ -233,9 +233,6 @@ def _plot(doc, names, labels, folder, formats=("png",)):
             ax.axis("off")
         cb = fig.colorbar(im, ax=axs[:, -1].tolist() if cols > 1 else axs[:, 0].tolist(), label=title, shrink=0.9)
         if isinstance(norm, LogNorm):  # plain numbers on a log colour bar (not 9×10⁰)
-            from matplotlib.ticker import FuncFormatter
-
-            plain = FuncFormatter(lambda v, _: f"{v:g}")
             cb.ax.yaxis.set_major_formatter(plain)
             if hi < 10 * lo:  # less than a decade: the minor ticks are the only labels
                 cb.ax.yaxis.set_minor_formatter(plain)

@@ -226,15 +226,13 @@ def terminal_table(stats, width: int = 120) -> str:
     keys = sorted((i for i, r in rank.items() if r is not None), key=lambda i: rank[i])
     cut = lambda text, n: text if len(text) <= n else text[:n - 1] + "…"  # noqa: E731
     labels = [cut(str(r[0]), 24) for r in rows]
+    wide = {j: max(len(header[j]), *(len(str(r[j])) for r in rows)) for j in keys}  # each column's width
+    first = max(len("filter"), *map(len, labels))
     chosen = []
     for i in keys:
-        trial = sorted(chosen + [i])
-        widths = [max(len("filter"), *map(len, labels))] + [max(len(header[j]), *(len(str(r[j])) for r in rows))
-                                                             for j in trial]
-        if sum(widths) + 2 * len(trial) <= width:
-            chosen = trial
-    widths = [max(len("filter"), *map(len, labels))] + [max(len(header[j]), *(len(str(r[j])) for r in rows))
-                                                         for j in chosen]
+        if first + sum(wide[j] + 2 for j in chosen + [i]) <= width:
+            chosen = sorted(chosen + [i])
+    widths = [first] + [wide[j] for j in chosen]
     line = lambda cells: "  ".join(c.ljust(w) if k == 0 else c.rjust(w)  # noqa: E731
                                    for k, (c, w) in enumerate(zip(cells, widths))).rstrip()
     out = [line(["filter"] + [header[j] for j in chosen])]

@@ -50,6 +50,12 @@ from tracklab.pytree import static
 from tracklab.sensors.geometry import measure_whole, report_mask, wrap
 
 
+def _inverse_cdf(u, pmf):
+    """The least index n with u ≤ P(N ≤ n), for a distribution given by its probabilities ``pmf``
+    (the last index + 1 when u passes them all)."""
+    return jnp.sum(u > jnp.cumsum(pmf)).astype(jnp.int32)
+
+
 def poisson_count(u, mean, capacity: int):
     """The number N ∈ {0, …, capacity + 1} with P(N ≤ n − 1) < u ≤ P(N ≤ n) for a Poisson(mean)
     N, capacity + 1 standing for "more than capacity": the inverse distribution function at the
@@ -58,8 +64,7 @@ def poisson_count(u, mean, capacity: int):
     log_mean = jnp.log(jnp.maximum(mean, jnp.finfo(jnp.result_type(mean)).tiny))
     log_p = -mean + n * log_mean - jax.scipy.special.gammaln(n + 1.0)
     log_p = jnp.where(n == 0, -mean, log_p)  # 0·log 0 = 0
-    cdf = jnp.cumsum(jnp.exp(log_p))
-    return jnp.sum(u > cdf).astype(jnp.int32)
+    return _inverse_cdf(u, jnp.exp(log_p))
 
 
 def stronger_alarms(u, v, n, snr_db, capacity: int):
@@ -77,8 +82,7 @@ def stronger_alarms(u, v, n, snr_db, capacity: int):
                   - jax.scipy.special.gammaln(jnp.maximum(nf - k, 0.0) + 1.0))
     # 0·log 0 = 0 at the ends (p → 0 or 1)
     terms = log_choose + jnp.where(k > 0, k * log_p, 0.0) + jnp.where(nf - k > 0, (nf - k) * log_q, 0.0)
-    cdf = jnp.cumsum(jnp.where(k <= nf, jnp.exp(terms), 0.0))
-    return jnp.minimum(jnp.sum(v > cdf), n).astype(jnp.int32)
+    return jnp.minimum(_inverse_cdf(v, jnp.where(k <= nf, jnp.exp(terms), 0.0)), n).astype(jnp.int32)
 
 
 @jax.tree_util.register_dataclass
