@@ -181,12 +181,80 @@ def test_stats_json_contract(valid_run):
     assert kinds == {LABELS[0]: "ekf", LABELS[1]: "cmkf"}
 
 
-def test_series_has_every_summary_quantity(valid_run):
+def test_series_has_every_summary_quantity(valid_run, tmp_path):
+    """Every summary has its per-step series in the folder (nees_in_bounds: the NEES and its band,
+    from which test_stats_json_contract recomputes it); the series are in series.npz, which
+    numpy.load reads, and a string of the file's own that reads like the mark stays a string."""
+    import json
+
+    from tracklab.report.document import SERIES_MARK, split_series, write_series
+
     root, _ = valid_run
     stats = read_results(root / "out")
     for f in stats["filters"].values():
-        for key in SUMMARY_KEYS:
+        for key in (*SERIES_KEYS, "nees_lo", "nees_hi"):
             assert len(f["series"][key]) == STEPS, key
+    lean, arrays = split_series({"label": SERIES_MARK, "series": {"x": np.arange(40.0)}})
+    (tmp_path / "stats.json").write_text(json.dumps(lean))
+    write_series(tmp_path / "series.npz", arrays)
+    back = read_results(tmp_path)
+    assert back["label"] == SERIES_MARK and np.array_equal(back["series"]["x"], np.arange(40.0))
+    with np.load(tmp_path / "series.npz") as npz:
+        assert npz[json.dumps(["series", "x"])].dtype == np.float32
+
+
+def test_plot_draws_again_from_the_folder_and_keeps_the_rest(valid_run, tmp_path, monkeypatch, capsys):
+    """`tracklab plot`: other formats and kinds from the stored statistics, every other file as it
+    was; a bad kind, a folder that is not a run's, and one holding a file of the user's refused
+    in one line, nothing changed."""
+    import json
+    import shutil
+
+    root, _ = valid_run
+    folder = tmp_path / "copy"
+    shutil.copytree(root / "out", folder)
+    kept = {p.name: p.read_bytes() for p in folder.iterdir() if p.name != ".tracklab-files"}
+    proc = in_process("plot", "copy", "--format", "pdf", "--figures", "rmse,track", cwd=tmp_path,
+                      monkeypatch=monkeypatch, capsys=capsys)
+    assert proc.returncode == 0, proc.stderr
+    assert "rmse.pdf, track.pdf" in proc.stdout
+    assert (folder / "rmse.pdf").read_bytes().startswith(b"%PDF") and not (folder / "nees.pdf").exists()
+    assert all((folder / name).read_bytes() == data for name, data in kept.items())
+    assert {"rmse.pdf", "track.pdf"} <= set(json.loads((folder / ".tracklab-files").read_text())["files"])
+    (folder / "mine.txt").write_text("mine")
+    for args, field in ((("copy", "--figures", "rmse,bogus"), "bogus"), (("copy",), "tracklab did not write"),
+                        ((".",), "stats.json")):
+        proc = in_process("plot", *args, cwd=tmp_path, monkeypatch=monkeypatch, capsys=capsys)
+        assert proc.returncode == 2 and len(proc.stderr.splitlines()) == 1 and field in proc.stderr, proc.stderr
+    assert (folder / "mine.txt").read_text() == "mine" and leftovers(tmp_path) == []
+
+
+def test_phases_and_bars_on_a_terminal(monkeypatch):
+    """On a terminal: each phase a line, the runs' bar and a training's bar (with its loss), the
+    elapsed time at the end; --quiet or no terminal: nothing."""
+    import io
+
+    from tracklab import progress
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    err = Terminal()
+    monkeypatch.setattr(sys, "stderr", err)
+    assert progress.wanted(False) and not progress.wanted(True)
+    phases = progress.Phases("small", progress.wanted(False))
+    phases.phase("compiling the program")
+    phases.train("DEKF", 3, 3, 0.25)
+    phases.progress(40, 100)
+    phases.progress(100, 100)
+    phases.done("done")
+    text = err.getvalue()
+    for part in ("small: compiling the program\n", "small: training DEKF", "3/3", "loss 0.25", "small: running",
+                 "100/100", "small: done ("):
+        assert part in text, (part, text)
+    monkeypatch.setattr(sys, "stderr", io.StringIO())
+    assert not progress.wanted(False)
 
 
 # --- seeds ------------------------------------------------------------------------------------
@@ -234,6 +302,8 @@ BAD = [
                       csv="t,x,y,z\n0,1,2,3\n"),
                  ["scenario.path", "'flight.csv'", "at least 2"], id="short-trajectory-csv"),
     pytest.param(_bad(VALID, args=("--runs", 10**11)), ["--runs", str(10**11)], id="runs-too-large"),
+    pytest.param(_bad(VALID.replace("[report]", '[report]\nfigures = ["rmse", "trak"]')),
+                 ["report.figures", "'trak'", "track_loss"], id="unknown-figure-kind"),
     pytest.param(_bad(VALID.replace("sigma_r = 100.0", "sigma_r = 1e200")), ["sensor.sigma_r", "1e+200"],
                  id="sigma-1e200"),
     pytest.param(_bad(VALID.replace("[report]", "[prior]\npos_sigma = 1e200\n\n[report]")),

@@ -70,10 +70,14 @@ def test_tracking_figures(drawn, name, expected):
     figures.plot_figures(doc, Path("unused"))
     assert expected <= set(drawn), sorted(drawn)
     for stem, fig in drawn.items():
-        labels = list(doc["filters"]) if stem not in ("track",) else []
-        _check(fig, stem, labels)
+        _check(fig, stem, list(doc["filters"]))  # the track's panels name their filters in their titles
         if stem.startswith(("rmse", "mean_error", "nees", "nis", "pred_error", "run0", "track_loss")):
             assert any("time (s)" in ax.get_xlabel() for ax in fig.axes), stem
+    if "track" in drawn:  # one colour scale, named with its unit; coinciding filters share a panel
+        bars = [ax for ax in drawn["track"].axes if ax.get_label() == "<colorbar>"]
+        assert len(bars) == 1 and bars[0].get_ylabel() == "position RMSE (m)"
+        panels = [ax for ax in drawn["track"].axes if ax.collections and ax not in bars]
+        assert len(panels) < len(doc["filters"]) or name != "lidar_crossing"
     rmse = drawn["rmse"]
     ylabels = [ax.get_ylabel() for ax in rmse.axes]
     pu, vu = doc.get("units", ("m", "m/s"))
@@ -107,6 +111,10 @@ def test_airborne_and_servo_figures(drawn):
     with_nees = [l for l, f in doc["filters"].items() if np.isfinite(figures.arr(f["series"]["nees"])).any()]
     for stem, fig in drawn.items():
         _check(fig, stem, with_nees if stem == "nees" else list(doc["filters"]))
+    named = {t.get_text() for t in _texts(drawn["pointing_error"])}
+    assert set(doc["windows"]) <= named, named  # the report windows shaded and named, the jolt's among them
+    note = " ".join(" ".join(t.get_text() for lg in drawn["pointing_error"].legends for t in lg.get_texts()).split())
+    assert "disturbance 12–14 s" in note and "jolted 10 mrad at 12 s" in note, note
     drawn.clear()
     doc = _doc("dekf_on_axis")
     servo.plot_servo(doc, Path("unused"))

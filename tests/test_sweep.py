@@ -1,5 +1,6 @@
 """Sweeps: one vmapped call over a grid of scale factors, equal to separate runs."""
 
+import json
 import subprocess
 import sys
 import textwrap
@@ -168,3 +169,33 @@ def test_a_sweep_of_three_axes_says_it_draws_no_figures(tmp_path, monkeypatch, c
     quiet = in_process("sweep", path, *grid, "--out", tmp_path / "sw2", "--no-figures", cwd=tmp_path,
                        monkeypatch=monkeypatch, capsys=capsys)
     assert quiet.returncode == 0 and "no figures" not in quiet.stdout + quiet.stderr, quiet.stdout
+
+
+def test_a_sweep_table_gives_lost_tracks_with_their_wilson_interval(tmp_path):
+    """In clutter a sweep's table shows each point's fraction of lost tracks with the Wilson
+    interval its run shows (table.md), the bounds as columns of table.csv, and keeps them in
+    sweep.json; the caption says what they are."""
+    import csv
+    from types import SimpleNamespace
+
+    from tracklab.report.sweep import _write_sweep
+
+    def stats(p, lo, hi):
+        summary = {"p_lost": p, "lost": int(p * 100), "validated_per_scan": 1.2, "rmse_pos": 10.0, "rmse_vel": 1.0,
+                   "pred_err_rms": 11.0, "nees": 4.1, "nees_in_bounds": 0.9, "diverged": 0}
+        return {"level": 0.95, "filters": {"PDAF": {"kind": "pdaf", "summary": summary,
+                                                    "half_width": {"rmse_pos": 0.3}, "intervals": {"p_lost": [lo, hi]}}}}
+
+    doc = {"axes": {"sensor.p_detect": [0.8, 0.9]}, "titles": {"sensor.p_detect": "sensor.p_detect"}, "runs": 100,
+           "wall_s": 1.0, "compile_s": 1.0,
+           "points": [{"values": {"sensor.p_detect": 0.8}, "stats": stats(0.2, 0.133, 0.289)},
+                      {"values": {"sensor.p_detect": 0.9}, "stats": stats(0.05, 0.022, 0.112)}]}
+    exp = SimpleNamespace(name="clutter", window=(1, 10), raw={}, path=None)
+    _write_sweep(exp, doc, tmp_path, figures=False)
+    table = (tmp_path / "table.md").read_text()
+    assert "| 20 % (13–29 %) |" in table and "| 5 % (2.2–11 %) |" in table and "Wilson interval" in table, table
+    rows = list(csv.DictReader((tmp_path / "table.csv").open()))
+    assert [(r["p_lost"], r["p_lost_lo"], r["p_lost_hi"]) for r in rows] == [("0.2", "0.133", "0.289"),
+                                                                          ("0.05", "0.022", "0.112")]
+    kept = json.loads((tmp_path / "sweep.json").read_text())
+    assert kept["points"][1]["filters"]["PDAF"]["intervals"] == {"p_lost": [0.022, 0.112]}

@@ -111,6 +111,7 @@ def cmd_run(args) -> int:
         if done >= total:
             phases.phase(f"drawing the figures and writing {out}/" if figures else f"writing {out}/")
 
+    progress.train = phases.train  # a DEKF trained before the runs: its own bar
     extra = {"target_precision": target} if target is not None else {}
     for line in exp.before_runs():  # minutes without a line otherwise (a DEKF trained first): said in a log too
         if writes() and not args.quiet:
@@ -232,6 +233,11 @@ def cmd_tune(args) -> int:
     out = Path(args.out) if args.out else folder.with_name(f"{exp.name}_tuned.toml")  # beside the results
     check_tune(exp, names, labels, out, args.runs_per_step, args.max_memory, folder=folder)
 
+    if writes():
+        from tracklab.progress import Phases, wanted
+
+        Phases(exp.name, wanted(False)).phase(f"compiling the tuning program ({', '.join(names)}; {args.loss}), then "
+                                              f"a line every {args.every} steps")
     run_tune(exp, names, steps=args.steps, lr=args.lr, loss=args.loss, runs_per_step=args.runs_per_step,
              labels=labels, out_toml=out, folder=folder,
              log=lambda line: (raise_if_interrupted(), writes() and print(line, flush=True)), every=args.every,
@@ -300,11 +306,41 @@ def cmd_reproduce(args) -> int:
 
     from tracklab.reproduce import reproduce
 
+    from tracklab.progress import Phases, wanted
+
     out = args.out or (tempfile.mkdtemp(prefix="tracklab-quick-") if args.quick else "results")
+    phases = Phases("reproduce", wanted(args.quiet))
+
+    def progress(done, total):  # each experiment's runs: a bar on a terminal
+        raise_if_interrupted()
+        phases.progress(done, total)
+
+    progress.train = phases.train
     folders = reproduce(args.experiments, out, quick=args.quick, max_memory=args.max_memory,
-                        figures=_figures(args))
+                        figures=_figures(args), progress=progress)
     print(f"{len(folders)} results folders and {Path(out) / 'README.md'} (combined table) rebuilt")
     return 0
+
+
+def cmd_plot(args) -> int:
+    from tracklab.report.redraw import redraw
+
+    kinds = None if args.figures is None else tuple(k.strip() for k in args.figures.split(",") if k.strip())
+    for folder in args.folders:
+        written = redraw(folder, args.format, None if kinds is None else _figure_kinds(kinds))
+        print(f"{folder}: {', '.join(written) if written else 'no figure to draw'}")
+    return 0
+
+
+def _figure_kinds(kinds):
+    from tracklab.report.figures import FIGURE_KINDS
+
+    if kinds == ("all",):
+        return FIGURE_KINDS
+    bad = [k for k in kinds if k not in FIGURE_KINDS]
+    if bad or not kinds:
+        raise ConfigError("tracklab plot", "--figures", ",".join(bad), f"must be all or among {', '.join(FIGURE_KINDS)}")
+    return kinds
 
 
 class _Parser(argparse.ArgumentParser):
@@ -390,7 +426,15 @@ def build_parser():
     rp.add_argument("--max-memory", type=_size, help="refuse experiments needing more (default: this machine's memory)")
     rp.add_argument("--no-figures", action="store_true", help="skip the figures (the numbers alone)")
     rp.add_argument("--format", type=_formats, default=("png",), metavar="FMT", help="figure formats: png, pdf, svg")
+    rp.add_argument("--quiet", action="store_true", help="no progress bars on stderr")
     rp.set_defaults(func=cmd_reproduce)
+    pl = sub.add_parser("plot", help="draw a results folder's figures again from its statistics (other formats, other "
+                                     "figure kinds), running nothing")
+    pl.add_argument("folders", nargs="+", metavar="FOLDER", help="a run's results folder (tracklab run, reproduce)")
+    pl.add_argument("--format", type=_formats, default=("png",), metavar="FMT", help="figure formats: png, pdf, svg")
+    pl.add_argument("--figures", metavar="KINDS", help="comma-separated figure kinds of a tracking run, or all "
+                                                        "(default: those the experiment file names, else all)")
+    pl.set_defaults(func=cmd_plot)
     ls = sub.add_parser("list", help="experiment files, filter kinds (with their sensors and parameters), sensors and scenarios")
     ls.add_argument("--dir", default=None, help="folder of experiment files (default: experiments/, if there is one)")
     ls.add_argument("--markdown", action="store_true", help="the kinds and their numbers as the documentation's "

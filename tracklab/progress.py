@@ -35,10 +35,25 @@ class Phases:
         if self.bar is None:
             from tqdm import tqdm
 
-            width = shutil.get_terminal_size((100, 24)).columns  # a terminal that reports no size: 100
-            self.bar = tqdm(total=total, initial=0, unit=f" {self.unit}", unit_scale=True, file=sys.stderr,
-                            desc=f"{self.name}: running", leave=True, ncols=min(width, 120))
+            self.bar = tqdm(total=total, initial=0, unit=f" {self.unit}", unit_scale=total >= 10**4, file=sys.stderr,
+                            desc=f"{self.name}: running", leave=True, **_size())
         self.bar.total = total  # a run to a target precision learns its total as it goes
+        self.bar.update(done - self.bar.n)
+        if done >= total:
+            self._close()
+
+    def train(self, label: str, done: int, total: int, loss: float):
+        """A training's bar (a DEKF trained before the runs): its Adam steps, rate, time estimate and
+        the latest loss; closed at the last step."""
+        if not self.enabled:
+            return
+        desc = f"{self.name}: training {label}"
+        if self.bar is None or self.bar.desc != desc:
+            from tqdm import tqdm
+
+            self._close()
+            self.bar = tqdm(total=total, unit=" steps", file=sys.stderr, desc=desc, leave=True, **_size())
+        self.bar.set_postfix_str(f"loss {loss:.4g}", refresh=False)
         self.bar.update(done - self.bar.n)
         if done >= total:
             self._close()
@@ -54,6 +69,13 @@ class Phases:
             self._close()
             print(f"{self.name}: {what} ({time.perf_counter() - self.started:.1f} s in all)", file=sys.stderr,
                   flush=True)
+
+
+def _size() -> dict:
+    """A bar's width (at most 120) and the screen's height: a terminal that reports no size (0 × 0,
+    where tqdm would hide every bar) counts as 100 × 24."""
+    cols, rows = shutil.get_terminal_size((100, 24))
+    return {"ncols": min(cols, 120), "nrows": rows}
 
 
 def wanted(quiet: bool) -> bool:

@@ -204,9 +204,9 @@ def _check_outputs(exps, jobs, experiments_dir: Path, results_dir: Path, quick, 
 
 
 def reproduce(experiments_dir="experiments", results_dir="results", quick=False, log=print, max_memory=None,
-              figures=True):
+              figures=True, progress=None):
     """Run every experiment file and its studies (with their PNG figures if ``figures``); return
-    the results folders written, in order."""
+    the results folders written, in order. ``progress``: each run's callback (``Experiment.run``)."""
     folder = Path(experiments_dir)
     if not folder.is_dir():
         raise ConfigError(folder, "--experiments", str(folder), "must be a folder of experiment files (*.toml)")
@@ -222,7 +222,7 @@ def reproduce(experiments_dir="experiments", results_dir="results", quick=False,
     _check_outputs(exps, jobs, folder, results_dir, quick, max_memory)
     for i, (exp, runs, out) in enumerate(jobs, start=1):
         log(f"[{i}/{len(jobs)}] {exp.name}: {runs or exp.runs} runs x {exp.steps} steps -> {out}")
-        doc = exp.run(runs=runs, out=out, max_memory=max_memory, figures=figures)
+        doc = exp.run(runs=runs, out=out, max_memory=max_memory, figures=figures, progress=progress)
         log(f"        {doc['wall_s']:.1f} s")
         folders.append(out)
         if out == results_dir / exp.name:  # its tuning and sweep studies, once per experiment file

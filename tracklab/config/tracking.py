@@ -39,6 +39,7 @@ from tracklab.filters.fusion import view_of
 from tracklab.filters.kind import Entry
 from tracklab.filters.registry import KINDS
 from tracklab.montecarlo.statistics import REPORT_WINDOW
+from tracklab.report.figures import FIGURE_KINDS
 from tracklab.scenarios import (
     SCENARIOS,
     Generated,
@@ -359,6 +360,7 @@ def parse_tracking(path: Path, raw: dict) -> Experiment:
         raise ConfigError(f, "report.window", w, f"must be [first, last] steps with 1 <= first <= last <= {steps}")
     pred_windows = pred_windows_of(f, rp.get("windows", {}), (w[0], w[1]), steps, dt)
     level, baseline = level_and_baseline(rp, labels)
+    _figure_kinds(f, rp)
     rp.check_unknown()
     studies = parse_studies(f, raw.get("study"), filters)
 
@@ -391,6 +393,16 @@ def _track_loss(f, raw, suite):
                      existence)
     tl.check_unknown()
     return loss
+
+
+def _figure_kinds(f, rp):
+    """[report] figures = ["rmse", "nees", …]: the figure kinds a run draws (default: every one)."""
+    kinds = rp.get("figures")
+    if kinds is None:
+        return
+    if (not isinstance(kinds, list) or any(not isinstance(k, str) or k not in FIGURE_KINDS for k in kinds)
+            or len(set(kinds)) != len(kinds)):
+        raise ConfigError(f, "report.figures", kinds, f"must be a list of distinct figure kinds: {', '.join(FIGURE_KINDS)}")
 
 
 def pred_windows_of(f, table, window, steps, dt):

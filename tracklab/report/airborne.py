@@ -104,6 +104,30 @@ def _range_axis(ax, t, rng):
     top.set_xticks([r for r in (20, 15, 10, 7, 5, 4, 3, 2) if rng.min() <= r <= rng.max()])
     top.set_xlabel("nominal range (km)", fontsize=8)
 
+def _shade_windows(axes, doc):
+    """The report windows (acquisition, steady, the jolt's disturbance, turn, close; paper 001's
+    phases) shaded in alternating tints on every time panel, named inside the top one (the
+    nominal-range axis is above it)."""
+    from matplotlib.patheffects import withStroke
+
+    spans = doc.get("window_spans") or {}
+    for i, (w, (t0, t1)) in enumerate(spans.items()):
+        for ax in axes:
+            ax.axvspan(t0, t1, color=("#e6e9f2", "#f2ebe1")[i % 2], zorder=-2, lw=0)
+        axes[0].text(0.5 * (t0 + t1), 0.98, w, transform=axes[0].get_xaxis_transform(), ha="center", va="top",
+                     fontsize=7, color="0.25", path_effects=[withStroke(linewidth=2.0, foreground="white")])
+
+
+def _windows_note(doc) -> str:
+    spans = doc.get("window_spans") or {}
+    note = "; shaded: the report windows " + ", ".join(f"{w} {a:g}–{b:g} s" for w, (a, b) in spans.items()) \
+        if spans else ""
+    jolt = doc.get("experiment", {}).get("disturbance")
+    if jolt:
+        note += f"; the antenna is jolted {jolt['pointing']:g} mrad at {jolt['time']:g} s"
+    return note
+
+
 def plot_airborne(doc, folder: Path, formats=("png",)):
     """The figures of an airborne results folder: per-period RMS errors with their confidence bands
     (``pointing_error.png``, ``rate_error.png``, ``range_error.png``: paper 001 Figs. 3, 4, 6), the
@@ -116,7 +140,7 @@ def plot_airborne(doc, folder: Path, formats=("png",)):
     level = doc.get("level", 0.95)
     title = f"{doc['name']}: {doc['runs']} runs"
     for name, rows, ref in AIRBORNE_PANELS:
-        fig, axes = panel_grid(plt, len(rows), 1, width=8.0, height=3.0)
+        fig, axes = panel_grid(plt, len(rows), 1, width=7.0, height=2.8)
         for ax, (key, ylabel) in zip(axes[:, 0], rows):
             for label, f in filters.items():
                 v = arr(f["series"][key])
@@ -128,14 +152,16 @@ def plot_airborne(doc, folder: Path, formats=("png",)):
             ax.set_ylabel(ylabel)
             plain_log(ax)
             ax.grid(True, which="both", alpha=0.3)
+        _shade_windows(axes[:, 0], doc)
         _range_axis(axes[0, 0], t, rng)
         axes[-1, 0].set_xlabel("time (s)")
         axes[0, 0].set_title(f"{title} ({ref})", fontsize=9)
-        legend(fig, axes, f"bands: {percent(level)} confidence of each period's RMS over the runs in lock")
+        legend(fig, axes, f"bands: {percent(level)} confidence of each period's RMS over the runs in lock"
+               + _windows_note(doc))
         save(plt, fig, folder, name, formats)
     shown = {l: f for l, f in filters.items() if np.isfinite(arr(f["series"]["nees"])).any()}
     if shown:
-        fig, axes = panel_grid(plt, 1, 1, width=8.0, height=3.4)
+        fig, axes = panel_grid(plt, 1, 1, width=7.0, height=3.2)
         ax = axes[0, 0]
         for label, f in shown.items():
             ax.plot(t, arr(f["series"]["nees"]), label=label + summary_value(f, "nees"), **(st[label] | {"lw": 1.0}))
@@ -145,12 +171,14 @@ def plot_airborne(doc, folder: Path, formats=("png",)):
                             label=f"{percent(level)} χ² band")
         ax.axhline(9, color="k", lw=0.6)
         plain_log(ax)
+        _shade_windows([ax], doc)
         ax.set_ylabel("average NEES (9 states)")
         ax.set_xlabel("time (s)")
         ax.grid(True, which="both", alpha=0.3)
         _range_axis(ax, t, rng)
         ax.set_title(title, fontsize=9)
-        legend(fig, axes, "in parentheses: each tracker's NEES averaged over the whole run ± its interval")
+        legend(fig, axes, "in parentheses: each tracker's NEES averaged over the whole run ± its interval"
+               + _windows_note(doc))
         save(plt, fig, folder, "nees", formats)
     windows = [w for w in doc.get("windows", []) if any(f"pointing[{w}]" in f.get("cdf", {}) for f in filters.values())]
     if windows:

@@ -9,6 +9,7 @@ single precision)."""
 from __future__ import annotations
 
 import json
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +29,7 @@ def _jsonable(obj):
         return _jsonable(obj.tolist())
     return stored(obj)
 
-MAX_SERIES_POINTS = 1000  # longer runs are stored (and drawn) every `stride` steps (a figure is ~1400 px wide)
+MAX_SERIES_POINTS = 500  # longer runs are stored (and drawn) every `stride` steps (a panel is ~1000 px wide)
 
 def series_stride(steps):
     return max(1, -(-steps // MAX_SERIES_POINTS))
@@ -69,7 +70,7 @@ def write_json(path: Path, doc):
     path.write_text(json.dumps(_jsonable(doc), separators=(",", ":"), allow_nan=False) + "\n")
 
 SERIES_FILE = "series.npz"
-SERIES_MARK = "$series"  # in stats.json, where an array of series.npz belongs: {"$series": its key}
+SERIES_MARK = "$series"  # in stats.json, where an array of series.npz belongs (its key there: its path, as JSON)
 LONGEST_INLINE = 32  # a list of numbers longer than this goes to series.npz
 
 
@@ -106,7 +107,7 @@ def split_series(doc) -> tuple[dict, dict]:
             if a is not None and a.size > LONGEST_INLINE:
                 key = json.dumps(path, ensure_ascii=False)
                 arrays[key] = a
-                return {SERIES_MARK: key}
+                return SERIES_MARK
             return [walk(v, path + [i]) for i, v in enumerate(obj)]
         return obj
 
@@ -124,16 +125,26 @@ def read_results(folder) -> dict:
     with np.load(path, allow_pickle=False) as npz:
         arrays = {k: npz[k] for k in npz.files}
 
-    def walk(obj):
+    def walk(obj, path):
         if isinstance(obj, dict):
-            if set(obj) == {SERIES_MARK}:
-                return arrays[obj[SERIES_MARK]]
-            return {k: walk(v) for k, v in obj.items()}
+            return {k: walk(v, path + [k]) for k, v in obj.items()}
         if isinstance(obj, list):
-            return [walk(v) for v in obj]
+            return [walk(v, path + [i]) for i, v in enumerate(obj)]
+        if obj == SERIES_MARK:  # a string of the file's own ("$series" as a label) has no array
+            return arrays.get(json.dumps(path, ensure_ascii=False), obj)
         return obj
 
-    return walk(doc)
+    return walk(doc, [])
+
+
+def write_series(path: Path, arrays: dict):
+    """An .npz that ``numpy.load`` reads: each array in single precision (seven digits, more than
+    any figure or table shows; half the bytes), compressed with LZMA (a tenth smaller than
+    ``numpy.savez_compressed``'s deflate on these noisy series)."""
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_LZMA) as archive:
+        for key, a in arrays.items():
+            with archive.open(f"{key}.npy", "w") as fh:
+                np.lib.format.write_array(fh, np.asarray(a, np.float32), allow_pickle=False)
 
 
 def write_tables(folder: Path, doc, table_md=None):
@@ -141,7 +152,7 @@ def write_tables(folder: Path, doc, table_md=None):
     one-row-per-filter table) and table.csv."""
     lean, arrays = split_series(doc)
     write_json(folder / "stats.json", lean)
-    if arrays:  # single precision: seven digits, more than any figure or table shows; half the bytes
-        np.savez_compressed(folder / SERIES_FILE, **{k: a.astype(np.float32) for k, a in arrays.items()})
+    if arrays:
+        write_series(folder / SERIES_FILE, arrays)
     (folder / "table.md").write_text(markdown_table(doc) if table_md is None else table_md)
     (folder / "table.csv").write_text(csv_table(doc))

@@ -7,9 +7,12 @@
 * ``pred_error.png``: one-step prediction RMS error per axis, named windows shaded.
 * ``error_cdf.png``: the distribution of the runs' RMS position errors (P(error ≤ x)).
 * ``run0.png``, ``run0_error.png``: run 0's estimates and errors, with each filter's ±3σ.
-* ``track.png``: the path seen from above, coloured by each filter's per-step RMSE.
+* ``track.png``: the path seen from above, coloured by the per-step position RMSE.
 * ``track_loss.png`` (an experiment with a track-loss test): the probability that the track
   is lost by each time with its Wilson band, and the returns validated per scan.
+
+A file's ``[report] figures = [...]`` draws only the kinds it names (``FIGURE_KINDS``);
+``tracklab plot`` draws any of them later from the stored statistics.
 
 The closed-loop worlds have their own (``plot_airborne``, ``plot_servo``).
 
@@ -46,6 +49,8 @@ def pyplot():
     return plt
 
 
+FIGURE_KINDS = ("rmse", "rmse_axes", "mean_error", "pred_error", "nees", "nis", "error_cdf", "track_loss", "run0",
+                "run0_error", "track")  # a tracking results folder's figures, by file stem
 FORMATS = ("png", "pdf", "svg")  # what figures may be written as: PNG for screens, PDF and SVG for papers
 DPI = 150  # a PNG's resolution
 
@@ -65,23 +70,21 @@ def formats_of(figures) -> tuple:
 
 def save(plt, fig, folder: Path, stem: str, formats=("png",)):
     """``fig`` written as ``folder/stem.<format>`` for each format, then closed. A PNG is drawn at
-    ``DPI``; a line plot is stored with a palette of 256 colours (an octree's: its few colours and
-    their anti-aliasing; a third of the size of full colour, the same to the eye, no slower to
-    write), a figure with a colour scale (a heatmap) in full colour, so that its scale stays smooth."""
+    ``DPI`` and stored with a palette of 256 colours (an octree's: a figure's few colours, the
+    levels of its colour scales and their anti-aliasing; a third of the size of full colour, the
+    same to the eye)."""
     import io
 
-    from matplotlib.collections import QuadMesh
     from PIL import Image
 
-    scaled = any(isinstance(c, QuadMesh) for ax in fig.axes for c in ax.collections) or any(ax.images for ax in fig.axes)
     for f in formats:
-        if f != "png" or scaled:
-            fig.savefig(Path(folder) / f"{stem}.{f}", dpi=DPI if f == "png" else None)
+        if f != "png":
+            fig.savefig(Path(folder) / f"{stem}.{f}")
             continue
         buf = io.BytesIO()
         fig.savefig(buf, format="png", dpi=DPI)
         image = Image.open(buf).convert("RGB").quantize(colors=256, method=Image.Quantize.FASTOCTREE)
-        image.save(Path(folder) / f"{stem}.png", dpi=(DPI, DPI))
+        image.save(Path(folder) / f"{stem}.png", dpi=(DPI, DPI), optimize=True)
     plt.close(fig)
 
 
@@ -207,9 +210,18 @@ def _window_slice(doc, t):
     return slice((a - 1) // stride, b // stride)
 
 
-def plot_figures(doc, folder: Path, formats=("png",)):
-    """Every figure of a tracking results folder (see the module's doc), in each of ``formats``."""
+def chosen_kinds(doc, kinds=None) -> frozenset:
+    """The figure kinds to draw: ``kinds``, else the experiment file's ``[report] figures``, else all."""
+    if kinds is None:
+        kinds = doc.get("experiment", {}).get("report", {}).get("figures")
+    return frozenset(FIGURE_KINDS if kinds is None else kinds)
+
+
+def plot_figures(doc, folder: Path, formats=("png",), kinds=None):
+    """The figures of a tracking results folder (see the module's doc), in each of ``formats``:
+    the kinds ``kinds`` (``FIGURE_KINDS``), by default those the experiment file names."""
     plt = pyplot()
+    kinds = chosen_kinds(doc, kinds)
     dt, stride = doc["dt"], doc.get("series_stride", 1)
     t = dt * np.arange(stride, doc["steps"] + 1, stride)
     filters = doc["filters"]
@@ -220,23 +232,21 @@ def plot_figures(doc, folder: Path, formats=("png",)):
     ctx = dict(doc=doc, t=t, filters=filters, st=st, dim=dim, folder=folder, plt=plt, AX=axes_names,
                pu=doc.get("units", ("m", "m/s"))[0], title=f"{doc['name']} — {doc['runs']} runs",
                w=_window_slice(doc, t), formats=formats)
-    _rmse(ctx)
-    _rmse_axes(ctx)
-    _mean_error(ctx)
-    _pred_error(ctx)
-    _consistency(ctx, "nees", f"average NEES (dof {2 * dim})", 2.0 * dim)
-    _consistency(ctx, "nis", "average NIS", None)
-    _error_cdf(ctx)
-    if doc.get("track_loss"):
-        _track_loss(ctx)
+    drawers = {"rmse": _rmse, "rmse_axes": _rmse_axes, "mean_error": _mean_error, "pred_error": _pred_error,
+               "nees": lambda c: _consistency(c, "nees", f"average NEES (dof {2 * dim})", 2.0 * dim),
+               "nis": lambda c: _consistency(c, "nis", "average NIS", None), "error_cdf": _error_cdf,
+               "track_loss": lambda c: doc.get("track_loss") and _track_loss(c)}
+    for kind, draw in drawers.items():
+        if kind in kinds:
+            draw(ctx)
     example = doc.get("example_run") or {}
-    if example:
-        plot_example(doc, example, t, dim, folder, st, formats)
-        if dim >= 2 and doc.get("units", ("m",))[0] == "m":
-            plot_track(doc, example, folder, formats)
+    if "estimates" in example and kinds & {"run0", "run0_error"}:
+        plot_example(doc, example, t, dim, folder, st, formats, kinds)
+    if example and "track" in kinds and dim >= 2 and doc.get("units", ("m",))[0] == "m":
+        plot_track(doc, example, folder, formats)
 
 
-def panel_grid(plt, rows, cols, width=7.0, height=2.6):
+def panel_grid(plt, rows, cols, width=6.0, height=2.4):
     return plt.subplots(rows, cols, figsize=(width * cols + 2.2, height * rows + 0.6), squeeze=False,
                         sharex=True, layout="constrained")
 
@@ -506,52 +516,149 @@ def _error_cdf(ctx):
 
 
 def plot_track(doc, example, folder: Path, formats=("png",)):
-    """The true path seen from above, coloured by each filter's per-step position RMSE (errors
-    along the path). The filters near the others share one colour scale; one far from them
-    has its own, beside its panel."""
+    """The true path seen from above, coloured by the position RMSE over the runs at each step
+    (where on the path a filter's error grows): one panel per filter, filters whose curves
+    coincide over the report window in one panel, one colour scale (logarithmic when the
+    errors span more than a decade) and one colour bar. Steps outside the report window are
+    drawn grey; the start, the direction, times along the path and the sensor (a polar or
+    angle sensor, at the origin) are marked."""
     import matplotlib.pyplot as plt
     from matplotlib.collections import LineCollection
+    from matplotlib.colors import BoundaryNorm
+    from matplotlib.patheffects import withStroke
 
     truth = np.asarray(example["truth"], float)
     xy = truth[:, [0, 2]] / 1000.0
+    n = len(xy)
+    dt, stride = doc["dt"], doc.get("series_stride", 1)
+    t = dt * np.arange(stride, doc["steps"] + 1, stride)[:n]
+    w = _window_slice(doc, t)
+    inside = np.zeros(n, bool)
+    inside[w] = True
     filters = doc["filters"]
-    vals = {label: arr(f["series"]["rmse_pos"]) for label, f in filters.items()}
-    main, out = split_outliers({l: f["summary"].get("rmse_pos") for l, f in filters.items()})
+    vals = {label: arr(f["series"]["rmse_pos"])[:n] for label, f in filters.items()}
+    merged = {g[0]: g for g in coinciding(vals, w)}
+    hidden = {l for g in merged.values() for l in g[1:]}
+    panels = [(merged.get(l, [l])) for l in vals if l not in hidden]
 
-    def norm_of(group):
-        finite = np.concatenate([vals[l][np.isfinite(vals[l])] for l in group] or [np.zeros(0)])
-        lo, hi = (np.percentile(finite, 2), np.percentile(finite, 98)) if finite.size else (1.0, 10.0)
-        return plt.Normalize(max(lo, 0.0), max(hi, lo + 1e-9))
+    shown = np.concatenate([v[w][np.isfinite(v[w]) & (v[w] > 0)] for v in vals.values()] or [np.zeros(0)])
+    lo, hi = (np.percentile(shown, 1), np.percentile(shown, 99)) if shown.size else (1.0, 10.0)
+    hi = max(hi, lo * 1.01, 1e-9)
+    log = lo > 0 and hi / lo > 10.0
+    levels = colour_levels(lo, hi, log)
+    cmap = plt.get_cmap("viridis").with_extremes(bad="none")
+    norm = BoundaryNorm(levels, cmap.N, extend="both")
 
-    shared = norm_of(main)
-    k = len(filters)
-    cols = min(k, 3)
+    sees_bearing = _has_bearing(doc)
+    span = max(np.ptp(xy[:, 0]), np.ptp(xy[:, 1]), 1e-3)
+    centre = 0.5 * (xy.min(axis=0) + xy.max(axis=0))
+    sensor_in_view = sees_bearing and np.hypot(*centre) < 1.5 * span
+    ticks = _time_ticks(t[-1])
+    pad = 0.08 * span
+    box = np.array([xy.min(axis=0) - pad, xy.max(axis=0) + pad])
+    if sensor_in_view:
+        box = np.array([np.minimum(box[0], -pad), np.maximum(box[1], pad)])
+    k = len(panels)
+    cols = 2 if k == 4 else min(k, 3)
     rows = -(-k // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4.4 * cols, 3.9 * rows), squeeze=False, layout="constrained")
+    aspect = float(np.clip(np.ptp(box[:, 1]) / np.ptp(box[:, 0]), 0.35, 1.1))  # a panel's height ÷ width
+    fig, axes = plt.subplots(rows, cols, figsize=(4.3 * cols + 1.2, (3.9 * aspect + 0.7) * rows + 0.6), squeeze=False,
+                             sharex=True, sharey=True, layout="constrained")
     seg = np.stack([xy[:-1], xy[1:]], axis=1)
-    for ax, (label, v) in zip(axes.flat, vals.items()):
-        norm = shared if label in main else norm_of([label])
-        lc = LineCollection(seg, cmap="viridis", norm=norm, linewidths=2.5)
-        lc.set_array(v[1:])
+    for ax, group in zip(axes.flat, panels):
+        v = vals[group[0]]
+        ax.plot(*xy[~inside].T, ".", color="0.65", ms=1.5, zorder=1)
+        lc = LineCollection(seg[inside[1:]], cmap=cmap, norm=norm, linewidths=4.0, capstyle="butt", zorder=2)
+        lc.set_array(np.where(np.isfinite(v[1:][inside[1:]]), v[1:][inside[1:]], np.nan))
         ax.add_collection(lc)
-        ax.plot([0], [0], "k^", ms=7)  # the sensor
-        ax.autoscale()
-        ax.set_aspect("equal", adjustable="datalim")
-        own = "" if label in main else " — own colour scale"
-        ax.set_title(f"{label}: RMSE {filters[label]['summary']['rmse_pos']:.1f} m{own}", fontsize=8)
-        ax.set_xlabel("east (km)", fontsize=8)
-        ax.set_ylabel("north (km)", fontsize=8)
-        ax.tick_params(labelsize=7)
+        ax.plot(*xy[0], "o", mfc="white", mec="k", ms=6, zorder=3)
+        ax.annotate("", xy=xy[-1], xytext=xy[max(n - 2, 0)], zorder=3,
+                    arrowprops=dict(arrowstyle="-|>", color="k", lw=1.0, mutation_scale=12))
+        for tt in ticks:
+            i = min(int(round(tt / (dt * stride))) - 1, n - 1)
+            ax.plot(*xy[i], "k.", ms=4, zorder=3)
+            ax.annotate(f"{tt:g} s", xy[i], textcoords="offset points", xytext=(4, 5), fontsize=6.5, color="0.1",
+                        path_effects=[withStroke(linewidth=2.0, foreground="white")], zorder=4)
+        if sensor_in_view:
+            ax.plot([0], [0], "k^", ms=7)
+            ax.annotate("sensor", (0, 0), textcoords="offset points", xytext=(6, -3), fontsize=7)
+        names = ", ".join(group)
+        value = filters[group[0]]["summary"].get("rmse_pos")
+        shown_value = "—" if value is None else f"{value:.3g} m" if abs(value) < 1000 else f"{value:.0f} m"
+        ax.set_title(f"{names}{' (coincide)' if len(group) > 1 else ''}: {shown_value}", fontsize=8, wrap=True)
+        ax.set_aspect("equal", adjustable="box")
         ax.grid(True, alpha=0.3)
-        if label not in main:
-            fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap="viridis"), ax=ax, shrink=0.8, location="bottom",
-                         label=f"{label}: position RMSE (m)")
+        ax.tick_params(labelsize=7)
+    axes.flat[0].set_xlim(box[:, 0])
+    axes.flat[0].set_ylim(box[:, 1])
+    for ax in axes[-1]:
+        ax.set_xlabel("east (km)", fontsize=8)
+    for ax in axes[:, 0]:
+        ax.set_ylabel("north (km)", fontsize=8)
     for ax in list(axes.flat)[k:]:
         ax.axis("off")
-    fig.colorbar(plt.cm.ScalarMappable(norm=shared, cmap="viridis"), ax=[a for a, l in zip(axes.flat, vals) if l in main],
-                 shrink=0.8, label="position RMSE (m)")
-    fig.suptitle(f"{doc['name']} — {doc['runs']} runs: error along the path", fontsize=10)
+    bar = fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=cmap), ax=axes, shrink=0.9 if rows > 1 else 0.75,
+                       label="position RMSE (m)")
+    bar.set_ticks(levels, labels=[level_label(v) for v in levels])
+    bar.ax.tick_params(labelsize=7)
+    a, b = doc.get("window", (1, doc["steps"]))
+    note = [f"○ start, arrow: direction; grey: outside the report window (steps {a}–{b})"
+            if (a > 1 or b < doc["steps"]) else "○ start, arrow: direction"]
+    if sees_bearing and not sensor_in_view:
+        note.append(f"the sensor (origin) is {np.hypot(*centre):.0f} km from the path's centre, off the panels")
+    fig.suptitle(f"{doc['name']} — {doc['runs']} runs: position RMSE along the true path, seen from above",
+                 fontsize=10)
+    fig.supxlabel("; ".join(note), fontsize=7, color="0.3")
     save(plt, fig, folder, "track", formats)
+
+
+def colour_levels(lo: float, hi: float, log: bool, most: int = 24) -> list[float]:
+    """A colour scale's level boundaries at round numbers covering [lo, hi]: about ten evenly
+    spaced, or when ``log`` the finest of the round series (10, 6, 4 or 3 per decade) that needs
+    at most ``most`` levels (a scale of steps reads as values, and its few colours store exactly
+    in a PNG's palette)."""
+    import math
+
+    from matplotlib.ticker import MaxNLocator
+
+    if not log:
+        return [float(f"{v:.12g}") for v in MaxNLocator(nbins=10).tick_values(lo, hi)]
+    for subs in ((1, 1.25, 1.6, 2, 2.5, 3.2, 4, 5, 6.3, 8), (1, 1.5, 2, 3, 5, 7), (1, 2, 3, 5), (1, 2, 5), (1,)):
+        ticks = [float(f"{m * 10.0 ** n:.12g}") for n in range(math.floor(math.log10(lo)),
+                                                              math.ceil(math.log10(hi)) + 1) for m in subs]
+        first = max(v for v in ticks if v <= lo)
+        last = min(v for v in ticks if v >= hi)
+        levels = [v for v in ticks if first <= v <= last]
+        if len(levels) <= most:
+            return levels
+    return levels
+
+
+def level_label(v: float) -> str:
+    """A value on a scale or an axis: a plain number to four significant digits (0.2, 30, 5000), a
+    power of ten beyond (2×10⁵, 2.83×10⁻⁴)."""
+    if v == 0 or 1e-3 <= abs(v) < 1e4:
+        return f"{v:.4g}"
+    m, n = f"{v:.2e}".split("e")
+    m = m.rstrip("0").rstrip(".")
+    return f"$10^{{{int(n)}}}$" if m == "1" else f"${m}\\times10^{{{int(n)}}}$"
+
+
+def _has_bearing(doc) -> bool:
+    """Whether a sensor measures from the origin (range or angles), so that its place means something."""
+    e = doc.get("experiment", {})
+    sensors = e.get("sensors") or ([e["sensor"]] if isinstance(e.get("sensor"), dict) else e.get("sensor") or [])
+    return any(s.get("kind") not in ("cartesian",) for s in sensors if isinstance(s, dict))
+
+
+def _time_ticks(duration: float) -> list[float]:
+    """Four or five round times along a path of ``duration`` seconds."""
+    step = 10 ** np.floor(np.log10(max(duration, 1e-9) / 4))
+    for m in (1, 2, 2.5, 5, 10):
+        if duration / (m * step) <= 5:
+            step *= m
+            break
+    return [float(x) for x in np.arange(step, duration, step)]
 
 
 def _window_spans(doc):
@@ -606,7 +713,7 @@ def windows_note(doc, t) -> str:
     return "; ".join(parts)
 
 
-def plot_example(doc, example, t, dim, folder: Path, st=None, formats=("png",)):
+def plot_example(doc, example, t, dim, folder: Path, st=None, formats=("png",), kinds=("run0", "run0_error")):
     """Run 0: true and estimated position and velocity (``run0.png``), and the errors with each
     filter's own ±3σ envelope from its covariance (``run0_error.png``; paper 002 Figs. 4–7)."""
     import matplotlib.pyplot as plt
@@ -619,7 +726,7 @@ def plot_example(doc, example, t, dim, folder: Path, st=None, formats=("png",)):
     AX = doc.get("axes", AXES)
     st = st or styles(list(est), len(t))
     names = [("position", pu, 0), ("velocity", vu, 1)]
-    for kind in ("state", "error"):
+    for kind in [k for k, stem in (("state", "run0"), ("error", "run0_error")) if stem in kinds]:
         fig, axes = plt.subplots(2, dim, figsize=(5 * dim + 2.2, 6), sharex=True, squeeze=False, layout="constrained")
         for a in range(dim):
             for row, (q, unit, j) in enumerate(names):

@@ -45,7 +45,7 @@ def _run0_panels(plt, doc, traces, t, settle, ylabel, key, unit, shared_scale):
 
     tops = [x for x in map(top, traces.values()) if x is not None]
     st = styles(list(doc["filters"]), len(t))
-    fig, axes = panel_grid(plt, len(traces), 1, width=8.0, height=1.45)
+    fig, axes = panel_grid(plt, len(traces), 1, width=7.0, height=1.45)
     for ax, (label, e) in zip(axes[:, 0], traces.items()):
         ax.plot(t, e, **(st[label] | {"lw": 0.7, "ls": "-", "marker": None}))
         ax.axhline(0.0, color="0.5", lw=0.6)
@@ -86,7 +86,7 @@ def plot_servo(doc, folder: Path, formats=("png",)):
         save(plt, fig, folder, "rate_error", formats)
     shown = {l: f for l, f in filters.items() if f.get("cdf")}
     if shown:
-        fig, axes = panel_grid(plt, 1, 1, width=8.0, height=3.6)
+        fig, axes = panel_grid(plt, 1, 1, width=7.0, height=3.4)
         ax = axes[0, 0]
         groups = cdf_panel(ax, shown, styles(list(filters), len(t)), "max_track_err", "max_track_err_p{p}")
         ax.set_xlabel("run's maximum tracking error after settling (′)")

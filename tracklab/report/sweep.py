@@ -12,7 +12,7 @@ import numpy as np
 from tracklab.intervals import percent, with_half_width
 from tracklab.output import atomic_folder
 from tracklab.report.document import write_json
-from tracklab.report.figures import formats_of, pyplot, save, styles
+from tracklab.report.figures import colour_levels, formats_of, level_label, pyplot, save, styles
 from tracklab.report.tables import md_cell
 
 
@@ -47,28 +47,33 @@ def _write_sweep(exp, doc, tmp, figures):
     names = list(doc["axes"])
     labels = list(doc["points"][0]["stats"]["filters"])
     metrics = _metrics(doc["points"][0]["stats"]["filters"][labels[0]]["summary"])
-    rows, hws = [], []
+    rows, hws, wilson = [], [], []
     for p in doc["points"]:
         for l in labels:
             f = p["stats"]["filters"][l]
             s, hw = f["summary"], f.get("half_width", {})
             rows.append([*(p["values"][n] for n in names), l, *(s.get(m) for m in metrics), s.get("diverged", 0)])
             hws.append([hw.get(m) for m in metrics])
+            wilson.append(f.get("intervals", {}).get("p_lost") or [None, None])
     with_hw = [m for j, m in enumerate(metrics) if any(h[j] is not None for h in hws)]
+    lost = "p_lost" in metrics
     heads = [n if "." in n else f"{n} x" for n in names]
     header = [*heads, "filter", *metrics, "diverged"]
     lines = ["| " + " | ".join(md_cell(h) for h in header) + " |", "|" + "|".join(["---"] * len(header)) + "|"]
-    for r, h in zip(rows, hws):
+    for r, h, w in zip(rows, hws, wilson):
         cells = ([f"{v:.4g}" for v in r[:len(names)]] + [md_cell(r[len(names)])]
-                 + [with_half_width(v, hw, "{:.4g}") for v, hw in zip(r[len(names) + 1:-1], h)] + [str(int(r[-1]))])
+                 + [fraction_cell(v, w) if m == "p_lost" else with_half_width(v, hw, "{:.4g}")
+                    for m, v, hw in zip(metrics, r[len(names) + 1:-1], h)] + [str(int(r[-1]))])
         lines.append("| " + " | ".join(cells) + " |")
-    caption = "\n" + sweep_caption(doc) + "\n" if with_hw else ""
+    caption = "\n" + sweep_caption(doc) + "\n" if with_hw or lost else ""
     (tmp / "table.md").write_text("\n".join(lines) + "\n" + caption)
     buf = io.StringIO()
-    header_csv = header[:-1] + [f"{m}_hw" for m in with_hw] + header[-1:]
+    bounds = ["p_lost_lo", "p_lost_hi"] if lost else []
+    header_csv = header[:-1] + [f"{m}_hw" for m in with_hw] + bounds + header[-1:]
     csv.writer(buf).writerows([header_csv, *([*r[:len(names) + 1], *map(_csv, r[len(names) + 1:-1]),
-                                              *(_csv(h[metrics.index(m)]) for m in with_hw), r[-1]]
-                                             for r, h in zip(rows, hws))])
+                                              *(_csv(h[metrics.index(m)]) for m in with_hw),
+                                              *(map(_csv, w) if lost else ()), r[-1]]
+                                             for r, h, w in zip(rows, hws, wilson))])
     (tmp / "table.csv").write_text(buf.getvalue())
     summary_only = {
         "name": exp.name, "runs": doc["runs"], "window": list(exp.window), "axes": doc["axes"],
@@ -76,6 +81,8 @@ def _write_sweep(exp, doc, tmp, figures):
         "level": doc["points"][0]["stats"].get("level"),
         "points": [{"values": p["values"], "filters": {l: {"kind": f["kind"], "summary": f["summary"]}
                                                         | ({"half_width": f["half_width"]} if "half_width" in f else {})
+                                                        | ({"intervals": {"p_lost": f["intervals"]["p_lost"]}}
+                                                           if "p_lost" in f.get("intervals", {}) else {})
                                                         for l, f in p["stats"]["filters"].items()}}
                    for p in doc["points"]],
         "experiment": exp.raw,
@@ -100,7 +107,21 @@ def sweep_caption(doc) -> str:
         if separate:
             parts.append(f"each value of {', '.join(separate)} on runs of its own")
         same = "; ".join(parts) + "; the other points on the same runs"
-    return f"± : half-width of {level} over the {runs_text(doc['runs'])} runs at each point ({same})."
+    text = f"± : half-width of {level} over the {runs_text(doc['runs'])} runs at each point ({same})."
+    if any("p_lost" in f.get("intervals", {}) for p in doc["points"] for f in p["stats"]["filters"].values()):
+        text += (" p_lost: the fraction of lost tracks with its Wilson interval (p_lost_lo, p_lost_hi in table.csv); "
+                 "the other statistics are over the runs on track.")
+    return text
+
+
+def fraction_cell(p, bounds) -> str:
+    """A fraction with its interval, ``20 % (17–24 %)``; the fraction alone without one."""
+    if p is None:
+        return "—"
+    lo, hi = bounds
+    if lo is None or hi is None:
+        return percent(p)
+    return f"{percent(p)} ({percent(lo, sign=False)}–{percent(hi)})"
 
 
 def runs_text(runs) -> str:
@@ -142,6 +163,11 @@ def value_axis(ax, vals, positive):
     ax.set_ylim(mid - half, mid + half)
     ax.ticklabel_format(axis="y", style="plain", useOffset=False)
 
+def cell_text(v) -> str:
+    """A heatmap cell's value: three significant digits, whole numbers from 1000 on (not 1.27e+03)."""
+    return f"{v:.3g}" if abs(v) < 1000 else f"{v:.0f}"
+
+
 def _plot(doc, names, labels, folder, formats=("png",)):
     """Per metric one figure. A 1-D sweep: every filter's curve on one shared axis, each point
     with its confidence interval. A 2-D sweep: a heatmap per filter (at most three across) on one
@@ -149,7 +175,7 @@ def _plot(doc, names, labels, folder, formats=("png",)):
     the colour bar named in words and units. The matched point of scale-factor axes (every factor
     1) is marked; the NEES's consistent value (its degrees of freedom) is a dashed line on the
     curves and a white contour on the heatmaps."""
-    from matplotlib.colors import LogNorm, Normalize
+    from matplotlib.colors import BoundaryNorm
     from matplotlib.ticker import FuncFormatter
 
     plt = pyplot()
@@ -200,31 +226,35 @@ def _plot(doc, names, labels, folder, formats=("png",)):
             ax.set_title(f"{doc.get('name', '')}: {title}" + "".join(f"; {n}" for n in notes), fontsize=9)
             save(plt, fig, folder, f"sweep_{metric}", formats)
             continue
-        cols = min(len(labels), 3)
+        cols = 2 if len(labels) == 4 else min(len(labels), 3)
         rows = -(-len(labels) // cols)
-        fig, axs = plt.subplots(rows, cols, figsize=(4.8 * cols, 4.0 * rows), squeeze=False, layout="constrained")
+        fig, axs = plt.subplots(rows, cols, figsize=(4.8 * cols + 0.8, 4.0 * rows), squeeze=False, layout="constrained")
         lo, hi = float(every.min()), float(every.max())
-        norm = (Normalize(0.0, 1.0) if probability else LogNorm(lo, hi) if positive and hi > lo
-                else Normalize(lo, hi if hi > lo else lo + 1.0))
+        spread = positive and hi > 10.0 * lo  # more than a decade: log-spaced levels
+        levels = ([0.1 * k for k in range(11)] if probability
+                  else colour_levels(lo, hi if hi > lo else lo + max(abs(lo), 1.0), spread))
+        cmap = plt.get_cmap("viridis")
+        norm = BoundaryNorm(levels, cmap.N, extend="neither" if probability else "both")
+        shade = (lambda v: np.log(v / levels[0]) / np.log(levels[-1] / levels[0])) if spread else \
+            (lambda v: (v - levels[0]) / (levels[-1] - levels[0]))  # where a value lies on the scale, 0…1
         matched = [(i, j) for i, a in enumerate(axes_vals[0]) for j, b in enumerate(axes_vals[1])
                    if names[0] in factors and names[1] in factors and a == 1.0 and b == 1.0]
         for ax, l in zip(axs.flat, labels):
             grid = values[l].reshape(len(axes_vals[0]), len(axes_vals[1]))
             im = ax.pcolormesh(_edges(axes_vals[1], log[names[1]]), _edges(axes_vals[0], log[names[0]]), grid,
-                               norm=norm)
+                               norm=norm, cmap=cmap)
             for (i, j), v in np.ndenumerate(grid):
                 if not np.ma.is_masked(v):
-                    shade = norm(v)
-                    ax.text(axes_vals[1][j], axes_vals[0][i], f"{100 * v:.0f}%" if probability else f"{v:.3g}",
-                            ha="center", va="center", fontsize=7, color="w" if shade < 0.6 else "k")
+                    ax.text(axes_vals[1][j], axes_vals[0][i], f"{100 * v:.0f}%" if probability else cell_text(v),
+                            ha="center", va="center", fontsize=7, color="w" if shade(v) < 0.6 else "k")
             for i, j in matched:
                 ax.plot(axes_vals[1][j], axes_vals[0][i], "s", ms=22, mfc="none", mec="r", mew=1.5)
             if mark and len(axes_vals[0]) > 1 and len(axes_vals[1]) > 1 and np.nanmin(grid) < mark < np.nanmax(grid):
                 ax.contour(axes_vals[1], axes_vals[0], grid, levels=[mark], colors="w", linewidths=1.5)
             ax.set_xscale("log" if log[names[1]] else "linear")
             ax.set_yscale("log" if log[names[0]] else "linear")
-            ax.set_xticks(axes_vals[1], [f"{v:g}" for v in axes_vals[1]], fontsize=7)
-            ax.set_yticks(axes_vals[0], [f"{v:g}" for v in axes_vals[0]], fontsize=7)
+            ax.set_xticks(axes_vals[1], [level_label(v) for v in axes_vals[1]], fontsize=7)
+            ax.set_yticks(axes_vals[0], [level_label(v) for v in axes_vals[0]], fontsize=7)
             ax.minorticks_off()
             ax.set_xlabel(titles[names[1]], fontsize=8)
             ax.set_ylabel(titles[names[0]], fontsize=8)
@@ -232,11 +262,7 @@ def _plot(doc, names, labels, folder, formats=("png",)):
         for ax in list(axs.flat)[len(labels):]:
             ax.axis("off")
         cb = fig.colorbar(im, ax=axs[:, -1].tolist() if cols > 1 else axs[:, 0].tolist(), label=title, shrink=0.9)
-        if isinstance(norm, LogNorm):  # plain numbers on a log colour bar (not 9×10⁰)
-            cb.ax.yaxis.set_major_formatter(plain)
-            if hi < 10 * lo:  # less than a decade: the minor ticks are the only labels
-                cb.ax.yaxis.set_minor_formatter(plain)
-                cb.ax.tick_params(which="minor", labelsize=7)
+        cb.set_ticks(levels, labels=[f"{100 * v:.0f}%" if probability else level_label(v) for v in levels])
         if mark:
             cb.ax.axhline(mark, color="w", lw=1.5)
             notes.append(f"white line: consistent NEES = {mark}")

@@ -62,6 +62,7 @@ def document(exp, sums, runs, wall, compile_s, precision, samples=None):
     return {
         "name": exp.name, "runs": runs, "steps": exp.steps, "dt": exp.period, "window": [1, exp.steps],
         "series_stride": 1, "units": ["mrad", "mrad/s"], "axes": ["e", "d"], "windows": list(exp.windows),
+        "window_spans": {w: list(span) for w, span in exp.windows.items()},
         "level": exp.level, "wall_s": wall, "compile_s": compile_s, "precision": precision,
         "experiment": exp.raw, "t": t, "nominal_range": exp.nominal_range(), "filters": trackers,
     }

@@ -275,15 +275,19 @@ class ServoExperiment(protocol.Experiment):
                 f"{e.options['train_runs']} runs each)" for e in self.trained_first()]
 
     def train(self, cfg: protocol.UnitConfig, est, progress=None):
-        """Train a DEKF estimator's initial weights and λ on the rate it feeds forward; held-out evaluation."""
+        """Train a DEKF estimator's initial weights and λ on the rate it feeds forward; held-out
+        evaluation. A ``progress`` callback with a ``train(label, step, steps, loss)`` attribute (the
+        command's phases) is told every Adam step."""
         t0 = time.perf_counter()
+        told = getattr(progress, "train", None)
         net = est.filter_net
         frames = min(self.frames, int(round((self.settle + 10.0) / self.frame_dt)))
         trained, history, before, after = train_dekf(
             net, est.params, self.target_fn(), self.prior(), frames=frames, frame_dt=self.frame_dt, delay=self.delay,
             sigma=max(self.noise, 1e-3) / 3600.0, settle=min(self.settle, 0.5 * frames * self.frame_dt),
             steps=cfg.options["train_steps"], lr=cfg.numbers["train_lr"], runs_per_step=cfg.options["train_runs"],
-            seed=cfg.options["seed"] + 1)
+            seed=cfg.options["seed"] + 1,
+            on_step=None if told is None else lambda k, n, loss: told(cfg.label, k, n, loss))
         info = {"steps": len(history), "loss_history": [v for _, v in history], "heldout_before": before,
                 "heldout_after": after, "forget": float(trained["forget"]), "frames": frames,
                 "wall_s": time.perf_counter() - t0}

@@ -52,8 +52,9 @@ def rate_loss_fn(net, base_params, target, prior, frames, frame_dt, delay, sigma
 
 
 def train_dekf(net, params, target, prior, *, frames, frame_dt, delay, sigma, settle, steps=100, lr=0.01,
-               runs_per_step=8, eval_runs=32, seed=0, log=None):
-    """Train w0 and λ; returns (trained params, history [(step, loss)], eval before, eval after)."""
+               runs_per_step=8, eval_runs=32, seed=0, log=None, on_step=None):
+    """Train w0 and λ; returns (trained params, history [(step, loss)], eval before, eval after).
+    ``on_step(done, steps, loss)`` after every step (a progress bar)."""
     loss = rate_loss_fn(net, params, target, prior, frames, frame_dt, delay, sigma, settle)
     lam = float(params["forget"])
     theta = {"w0": jnp.asarray(params["w0"]), "lam_logit": jnp.asarray(math.log(lam / max(1 - lam, 1e-9)))}
@@ -73,6 +74,8 @@ def train_dekf(net, params, target, prior, *, frames, frame_dt, delay, sigma, se
                 log(f"stopped at step {k}: non-finite loss or gradient")
             break
         history.append((k, float(val)))
+        if on_step is not None:
+            on_step(k + 1, steps, float(val))
         if log and (k % 10 == 0 or k == steps - 1):
             log(f"step {k:4d}  loss {float(val):.6g}")
         updates, state = opt.update(g, state, theta)

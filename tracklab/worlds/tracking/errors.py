@@ -124,7 +124,7 @@ SUMS = ("count", "sum_pos", "sum_vel", "sumsq_pos", "sumsq_vel", "sum_nees", "su
          "sum_logdet_s", "sum_pred", "sumsq_pred", "sum4_pos", "sum4_vel", "sumsq2_pos", "sumsq2_vel",
          "sum_validated", "count_scans", "lost")
 
-MAXIMA = ("max_abs_pos", "max_abs_vel", "max_err_pos", "max_err_vel")
+MAXIMA = ("max_err_pos", "max_err_vel")
 
 PER_RUN_SCALARS = {"count", "sum_nees", "sum_nis", "count_nis", "dof_nis", "sum_logdet_s", "max_err_pos", "max_err_vel",
                     "sumsq2_pos", "sumsq2_vel", "sum_validated", "count_scans", "lost"}
@@ -196,8 +196,6 @@ def lane_sums(r: RunErrors, ok, runmax, w_k, dtype, lost=None):
         "lost": (jnp.zeros_like(ok) if lost is None else lost).astype(dtype)[None],
     }
     top = {
-        "max_abs_pos": jnp.abs(ep),
-        "max_abs_vel": jnp.abs(ev),
         "max_err_pos": norm(ep)[None],
         "max_err_vel": norm(ev)[None],
     }

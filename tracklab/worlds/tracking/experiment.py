@@ -23,7 +23,7 @@ from tracklab.memory import check
 from tracklab.montecarlo.statistics import REPORT_WINDOW, statistics
 from tracklab.pytree import named_leaves, with_leaves
 from tracklab.report.document import decimate, series_stride, write_tables
-from tracklab.report.figures import formats_of, plot_figures
+from tracklab.report.figures import chosen_kinds, formats_of, plot_figures
 from tracklab.sensors import SENSOR_SIGMAS, SensorSuite
 from tracklab.sensors.clutter import cluttered_of
 from tracklab.worlds import protocol
@@ -314,9 +314,26 @@ def example_of(exp, res):
         doc["measurements"] = ex["z"]
     return doc
 
+DERIVED_SERIES = ("mse_pos", "mse_vel", "pred_mse", "nees_in_bounds", "nis_in_bounds")
+
+
+def kept_on_disk(doc) -> dict:
+    """What a results folder keeps of a statistics document: all of it but the per-step series
+    another one gives (``mse_pos`` is ``rmse_pos`` squared) or that the summaries have already
+    counted (``nees_in_bounds``: its fraction is in the summary), and run 0's estimates only when
+    the experiment file draws ``run0`` or ``run0_error`` (the truth stays, for ``track.png``)."""
+    out = dict(doc)
+    out["filters"] = {label: f | {"series": {k: v for k, v in f["series"].items() if k not in DERIVED_SERIES}}
+                      if "series" in f else f for label, f in doc["filters"].items()}
+    example = doc.get("example_run")
+    if example and not chosen_kinds(doc) & {"run0", "run0_error"}:
+        out["example_run"] = {"truth": example["truth"]}
+    return out
+
+
 def write_results(doc, folder: Path, figures=True):
     """A statistics document's tables and (``figures``) figures in ``folder``; returns the document."""
-    write_tables(folder, doc)
+    write_tables(folder, kept_on_disk(doc))
     if formats_of(figures):
         plot_figures(doc, folder, formats_of(figures))
     return doc
