@@ -105,13 +105,7 @@ def cmd_run(args) -> int:
     phases = Phases(exp.name, writes() and wanted(args.quiet))
     figures = _figures(args)
 
-    def progress(done, total):
-        raise_if_interrupted()  # after each chunk: a Ctrl-C swallowed inside a callback still stops the run
-        phases.progress(done, total)
-        if done >= total:
-            phases.phase(f"drawing the figures and writing {out}/" if figures else f"writing {out}/")
-
-    progress.train = phases.train  # a DEKF trained before the runs: its own bar
+    progress = phases.callback(f"drawing the figures and writing {out}/" if figures else f"writing {out}/")
     extra = {"target_precision": target} if target is not None else {}
     for line in exp.before_runs():  # minutes without a line otherwise (a DEKF trained first): said in a log too
         if writes() and not args.quiet:
@@ -267,10 +261,7 @@ def cmd_sweep(args) -> int:
 
     phases = Phases(f"{exp.name} sweep", writes() and wanted(args.quiet), unit="runs (all grid points)")
 
-    def progress(done, total):
-        raise_if_interrupted()
-        phases.progress(done, total)
-
+    progress = phases.callback()
     phases.phase("compiling the grid's programs (or loading them, compiled before)")
     doc = sweep(exp, axes, runs=args.runs, progress=progress, max_memory=args.max_memory,  # checks grid and memory first
                 log=lambda line: writes() and print(f"{exp.name} sweep: {line}", file=sys.stderr, flush=True))
@@ -304,20 +295,13 @@ def cmd_table(args) -> int:
 def cmd_reproduce(args) -> int:
     import tempfile
 
+    from tracklab.progress import Phases, wanted
     from tracklab.reproduce import reproduce
 
-    from tracklab.progress import Phases, wanted
-
     out = args.out or (tempfile.mkdtemp(prefix="tracklab-quick-") if args.quick else "results")
-    phases = Phases("reproduce", wanted(args.quiet))
-
-    def progress(done, total):  # each experiment's runs: a bar on a terminal
-        raise_if_interrupted()
-        phases.progress(done, total)
-
-    progress.train = phases.train
+    phases = Phases("reproduce", wanted(args.quiet))  # each experiment's runs: a bar on a terminal
     folders = reproduce(args.experiments, out, quick=args.quick, max_memory=args.max_memory,
-                        figures=_figures(args), progress=progress)
+                        figures=_figures(args), progress=phases.callback())
     print(f"{len(folders)} results folders and {Path(out) / 'README.md'} (combined table) rebuilt")
     return 0
 

@@ -9,6 +9,8 @@ import shutil
 import sys
 import time
 
+from tracklab.interrupts import raise_if_interrupted
+
 
 class Phases:
     """A command's phases and its runs' progress bar (``progress(done, total)``, the runner's
@@ -33,10 +35,7 @@ class Phases:
         if not self.enabled:
             return
         if self.bar is None:
-            from tqdm import tqdm
-
-            self.bar = tqdm(total=total, initial=0, unit=f" {self.unit}", unit_scale=total >= 10**4, file=sys.stderr,
-                            desc=f"{self.name}: running", leave=True, **_size())
+            self.bar = _bar(f"{self.name}: running", total, self.unit, scale=total >= 10**4)
         self.bar.total = total  # a run to a target precision learns its total as it goes
         self.bar.update(done - self.bar.n)
         if done >= total:
@@ -49,14 +48,25 @@ class Phases:
             return
         desc = f"{self.name}: training {label}"
         if self.bar is None or self.bar.desc != desc:
-            from tqdm import tqdm
-
             self._close()
-            self.bar = tqdm(total=total, unit=" steps", file=sys.stderr, desc=desc, leave=True, **_size())
+            self.bar = _bar(desc, total, "steps")
         self.bar.set_postfix_str(f"loss {loss:.4g}", refresh=False)
         self.bar.update(done - self.bar.n)
         if done >= total:
             self._close()
+
+    def callback(self, then=None):
+        """The runner's ``progress(done, total)``: a Ctrl-C swallowed inside a callback still stops
+        the command; the bar; once every run is done, the next phase ``then`` (its line). A DEKF
+        trained before the runs reports through its ``train``."""
+        def progress(done, total):
+            raise_if_interrupted()
+            self.progress(done, total)
+            if done >= total and then:
+                self.phase(then)
+
+        progress.train = self.train
+        return progress
 
     def _close(self):
         if self.bar is not None:
@@ -71,11 +81,14 @@ class Phases:
                   flush=True)
 
 
-def _size() -> dict:
-    """A bar's width (at most 120) and the screen's height: a terminal that reports no size (0 × 0,
-    where tqdm would hide every bar) counts as 100 × 24."""
+def _bar(desc: str, total: int, unit: str, scale: bool = False):
+    """A tqdm bar on stderr, at most 120 wide. A terminal that reports no size (0 × 0, where tqdm
+    would hide every bar) counts as 100 × 24."""
+    from tqdm import tqdm
+
     cols, rows = shutil.get_terminal_size((100, 24))
-    return {"ncols": min(cols, 120), "nrows": rows}
+    return tqdm(total=total, unit=f" {unit}", unit_scale=scale, file=sys.stderr, desc=desc, leave=True,
+                ncols=min(cols, 120), nrows=rows)
 
 
 def wanted(quiet: bool) -> bool:

@@ -243,7 +243,7 @@ def plot_figures(doc, folder: Path, formats=("png",), kinds=None):
     if "estimates" in example and kinds & {"run0", "run0_error"}:
         plot_example(doc, example, t, dim, folder, st, formats, kinds)
     if example and "track" in kinds and dim >= 2 and doc.get("units", ("m",))[0] == "m":
-        plot_track(doc, example, folder, formats)
+        plot_track(doc, example, t, folder, formats)
 
 
 def panel_grid(plt, rows, cols, width=6.0, height=2.4):
@@ -515,7 +515,7 @@ def _error_cdf(ctx):
     save(ctx["plt"], fig, ctx["folder"], "error_cdf", ctx["formats"])
 
 
-def plot_track(doc, example, folder: Path, formats=("png",)):
+def plot_track(doc, example, t, folder: Path, formats=("png",)):
     """The true path seen from above, coloured by the position RMSE over the runs at each step
     (where on the path a filter's error grows): one panel per filter, filters whose curves
     coincide over the report window in one panel, one colour scale (logarithmic when the
@@ -530,8 +530,7 @@ def plot_track(doc, example, folder: Path, formats=("png",)):
     truth = np.asarray(example["truth"], float)
     xy = truth[:, [0, 2]] / 1000.0
     n = len(xy)
-    dt, stride = doc["dt"], doc.get("series_stride", 1)
-    t = dt * np.arange(stride, doc["steps"] + 1, stride)[:n]
+    t = t[:n]  # run 0's steps, stored as the series are
     w = _window_slice(doc, t)
     inside = np.zeros(n, bool)
     inside[w] = True
@@ -575,7 +574,7 @@ def plot_track(doc, example, folder: Path, formats=("png",)):
         ax.annotate("", xy=xy[-1], xytext=xy[max(n - 2, 0)], zorder=3,
                     arrowprops=dict(arrowstyle="-|>", color="k", lw=1.0, mutation_scale=12))
         for tt in ticks:
-            i = min(int(round(tt / (dt * stride))) - 1, n - 1)
+            i = int(np.argmin(np.abs(t - tt)))
             ax.plot(*xy[i], "k.", ms=4, zorder=3)
             ax.annotate(f"{tt:g} s", xy[i], textcoords="offset points", xytext=(4, 5), fontsize=6.5, color="0.1",
                         path_effects=[withStroke(linewidth=2.0, foreground="white")], zorder=4)
@@ -584,7 +583,7 @@ def plot_track(doc, example, folder: Path, formats=("png",)):
             ax.annotate("sensor", (0, 0), textcoords="offset points", xytext=(6, -3), fontsize=7)
         names = ", ".join(group)
         value = filters[group[0]]["summary"].get("rmse_pos")
-        shown_value = "—" if value is None else f"{value:.3g} m" if abs(value) < 1000 else f"{value:.0f} m"
+        shown_value = "—" if value is None else f"{short_value(value)} m"
         ax.set_title(f"{names}{' (coincide)' if len(group) > 1 else ''}: {shown_value}", fontsize=8, wrap=True)
         ax.set_aspect("equal", adjustable="box")
         ax.grid(True, alpha=0.3)
@@ -632,6 +631,11 @@ def colour_levels(lo: float, hi: float, log: bool, most: int = 24) -> list[float
         if len(levels) <= most:
             return levels
     return levels
+
+
+def short_value(v) -> str:
+    """A value written short: three significant digits, whole numbers from 1000 on (1270, not 1.27e+03)."""
+    return f"{v:.3g}" if abs(v) < 1000 else f"{v:.0f}"
 
 
 def level_label(v: float) -> str:

@@ -12,7 +12,7 @@ import numpy as np
 from tracklab.intervals import percent, with_half_width
 from tracklab.output import atomic_folder
 from tracklab.report.document import write_json
-from tracklab.report.figures import colour_levels, formats_of, level_label, pyplot, save, styles
+from tracklab.report.figures import colour_levels, formats_of, level_label, pyplot, save, short_value, styles
 from tracklab.report.tables import md_cell
 
 
@@ -163,11 +163,6 @@ def value_axis(ax, vals, positive):
     ax.set_ylim(mid - half, mid + half)
     ax.ticklabel_format(axis="y", style="plain", useOffset=False)
 
-def cell_text(v) -> str:
-    """A heatmap cell's value: three significant digits, whole numbers from 1000 on (not 1.27e+03)."""
-    return f"{v:.3g}" if abs(v) < 1000 else f"{v:.0f}"
-
-
 def _plot(doc, names, labels, folder, formats=("png",)):
     """Per metric one figure. A 1-D sweep: every filter's curve on one shared axis, each point
     with its confidence interval. A 2-D sweep: a heatmap per filter (at most three across) on one
@@ -245,7 +240,7 @@ def _plot(doc, names, labels, folder, formats=("png",)):
                                norm=norm, cmap=cmap)
             for (i, j), v in np.ndenumerate(grid):
                 if not np.ma.is_masked(v):
-                    ax.text(axes_vals[1][j], axes_vals[0][i], f"{100 * v:.0f}%" if probability else cell_text(v),
+                    ax.text(axes_vals[1][j], axes_vals[0][i], f"{100 * v:.0f}%" if probability else short_value(v),
                             ha="center", va="center", fontsize=7, color="w" if shade(v) < 0.6 else "k")
             for i, j in matched:
                 ax.plot(axes_vals[1][j], axes_vals[0][i], "s", ms=22, mfc="none", mec="r", mew=1.5)
