@@ -134,12 +134,13 @@ def _time_tracklab(exp, runs, chunk, repeat):
 def tracklab_e2e(exp, runs, chunk, repeat):
     """Simulate + filter + statistics, chunk by chunk, as ``runner.run`` does it, with the program
     ``runner.program`` compiled for the experiment's structure at this chunk size."""
+    from tracklab.montecarlo import runner
     from tracklab.worlds.tracking import errors
 
     structure, t = _time_tracklab(exp, runs, chunk, repeat)
     assert not t["held"], "the program was already compiled in this process: its compile time would read 0"
     return {"wall_s": t["wall_s"], "compile_s": t["compile_s"], "chunk": chunk,
-            "sums": errors.unpack(t["sums"], exp.dim)[structure.labels[0]]}
+            "sums": errors.unpack(t["sums"], exp.dim)[runner.lane_key(0)]}
 
 
 def tracklab_pass(exp, runs, chunk):

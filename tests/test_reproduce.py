@@ -32,6 +32,9 @@ label = "KF"
 [[filter]]
 kind = "alpha_beta"
 label = "AB"
+
+[report]
+figures = ["rmse"]            # the figure the test looks for; every kind is drawn in tests/test_figures.py
 """
 
 

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab import random
-from tracklab.linalg import jacobian
+from tracklab.linalg import jacobian, mm
 from tracklab.parameters import Param, positive
 from tracklab.pytree import static
 
@@ -178,7 +178,7 @@ class Sensor:
     def information(self, p):
         """Expected Fisher information of one report about the position: Pd·Hᵀ R⁻¹ H."""
         H = jacobian(self.h, p)
-        return self.p_detect * (H.T / jnp.square(jnp.asarray(self.sigma, p.dtype))) @ H
+        return self.p_detect * mm(H.T / jnp.square(jnp.asarray(self.sigma, p.dtype)), H)
 
 
 @jax.tree_util.register_dataclass
