@@ -26,6 +26,7 @@ from tracklab.output import (
     check_results_parent,
     write_text_atomically,
 )
+from tracklab.report.document import world_of
 from tracklab.report.tables import md_cell
 from tracklab.studies.files import check_tune, run_study
 from tracklab.studies.sweep import check_sweep
@@ -117,7 +118,7 @@ def row_units(doc, summary) -> str:
     pos, vel = (list(units) + ["?"])[:2] if len(units) > 1 else (units[0], f"{units[0]}/s")
     if summary.get("rmse_pos") is None and summary.get("max_track_err") is not None:
         return "′ (max err), ″ (random err)"
-    if "nominal_range" in doc:
+    if world_of(doc) == "airborne":
         return f"{pos} (pointing), {vel} (LOS rate)"
     return f"{pos}, {vel}"
 

@@ -137,6 +137,15 @@ def read_results(folder) -> dict:
     return walk(doc, [])
 
 
+def world_of(doc) -> str:
+    """Which world wrote a statistics document: "airborne", "servo" or "tracking"."""
+    if "nominal_range" in doc:
+        return "airborne"
+    if "t_frames" in (doc.get("example_run") or {}):
+        return "servo"
+    return "tracking"
+
+
 def write_series(path: Path, arrays: dict):
     """An .npz that ``numpy.load`` reads: each array in single precision (seven digits, more than
     any figure or table shows; half the bytes), compressed with LZMA (a tenth smaller than

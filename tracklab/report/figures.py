@@ -80,9 +80,11 @@ def save(plt, fig, folder: Path, stem: str, formats=("png",)):
         if f != "png":
             fig.savefig(Path(folder) / f"{stem}.{f}")
             continue
-        fig.set_dpi(DPI)
+        dpi = fig.dpi
+        fig.set_dpi(DPI)  # for this drawing only: a format written after it gets the figure's own, as savefig does
         fig.canvas.draw()
         pixels = Image.frombuffer("RGBA", fig.canvas.get_width_height(physical=True), fig.canvas.buffer_rgba())
+        fig.set_dpi(dpi)
         image = pixels.convert("RGB").quantize(colors=256, method=Image.Quantize.FASTOCTREE)
         image.save(Path(folder) / f"{stem}.png", dpi=(DPI, DPI), optimize=True)
     plt.close(fig)
@@ -538,7 +540,7 @@ def plot_track(doc, example, t, folder: Path, formats=("png",)):
     vals = {label: arr(f["series"]["rmse_pos"])[:n] for label, f in filters.items()}
     merged = {g[0]: g for g in coinciding(vals, w)}
     hidden = {l for g in merged.values() for l in g[1:]}
-    panels = [(merged.get(l, [l])) for l in vals if l not in hidden]
+    panels = [merged.get(l, [l]) for l in vals if l not in hidden]
 
     shown = np.concatenate([v[w][np.isfinite(v[w]) & (v[w] > 0)] for v in vals.values()] or [np.zeros(0)])
     lo, hi = (np.percentile(shown, 1), np.percentile(shown, 99)) if shown.size else (1.0, 10.0)

@@ -11,18 +11,9 @@ from pathlib import Path
 from tracklab.errors import ConfigError
 from tracklab.output import atomic_folder, listed_files
 from tracklab.report.airborne import plot_airborne
-from tracklab.report.document import read_results
+from tracklab.report.document import read_results, world_of
 from tracklab.report.figures import chosen_kinds, plot_figures
 from tracklab.report.servo import plot_servo
-
-
-def world_of(doc) -> str:
-    """Which world's figures a statistics document has: "airborne", "servo" or "tracking"."""
-    if "nominal_range" in doc:
-        return "airborne"
-    if "t_frames" in (doc.get("example_run") or {}):
-        return "servo"
-    return "tracking"
 
 
 def redraw(folder, formats=("png",), kinds=None, field="FOLDER") -> list[str]:
