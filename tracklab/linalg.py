@@ -48,14 +48,15 @@ def mm(A, B):
     for k in range(K):
         if not nonzero[:, k, :].any():
             continue
-        t = A2[:, k, None] * B2[None, k, :]
+        # column k of A times row k of B, each one static slice (a NumPy slice for a constant)
+        a = ca[:, k:k + 1] if ca is not None else jax.lax.slice_in_dim(A2, k, k + 1, axis=1)
+        b = cb[k:k + 1, :] if cb is not None else jax.lax.slice_in_dim(B2, k, k + 1, axis=0)
+        t = a * b
         out = t if out is None else out + t
     if out is None:
         out = jnp.zeros((n, m), dtype)
-    if vec_a:
-        return out[0]
-    if vec_b:
-        return out[:, 0]
+    if vec_a or vec_b:
+        return jnp.reshape(out, (m,) if vec_a else (n,))
     return out
 
 
