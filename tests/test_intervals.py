@@ -140,6 +140,45 @@ def test_paired_interval_is_zero_against_itself_and_narrower_than_unpaired(tmp_p
     assert st["filters"]["KF low q"]["paired"]["rmse_pos"]["half_width"] == 0.0
 
 
+def test_paired_moments_equal_numpy_on_the_runs_and_keep_a_tiny_difference():
+    """Streamed in chunks of unequal size, with runs missing from one lane or the other: the means,
+    covariances and paired half-width of ``RunSamples.pair`` equal NumPy's on the common runs.
+    Three lanes: f, f plus 1e-9 of noise (samples that agree to 9 digits: the variance of the
+    difference is 1e-18 of theirs, below the rounding of var f + var g − 2 cov(f, g), and must
+    come from the differences) and f itself under another label (a half-width of exactly 0)."""
+    from tracklab.intervals import paired_half_width, value_and_gradient
+    from tracklab.montecarlo.samples import RunSamples
+
+    rng = np.random.default_rng(5)
+    B, Q = 230, 3
+    f = 100.0 + rng.normal(size=(Q, B)) * [[1.0], [2.0], [0.5]]
+    values = np.stack([f, f + 1e-9 * rng.normal(size=(Q, B)), f])
+    ok = rng.random((3, B)) > 0.1
+    values = np.where(ok[:, None, :], values, np.nan)  # a run left out may hold anything
+    samples = RunSamples()
+    for a, b in ((0, 17), (17, 120), (120, B)):
+        samples.add(values[..., a:b], ok[:, a:b])
+    stat = ("root", [0, 2])
+    for lane, tol in ((1, 1e-5), (2, 0.0)):
+        pair = samples.pair(lane, 0)
+        both = ok[lane] & ok[0]
+        vf, vb = values[lane][:, both], values[0][:, both]
+        assert pair.n == both.sum()
+        np.testing.assert_allclose(pair.mean_f, vf.mean(1), rtol=1e-13)
+        np.testing.assert_allclose(pair.cov_ff, np.cov(vf), rtol=1e-9)
+        np.testing.assert_allclose(pair.cov_dg, np.cov(vf - vb, vb)[:Q, Q:], rtol=1e-5, atol=1e-20)
+        np.testing.assert_allclose(pair.cov_dd, np.cov(vf - vb), rtol=1e-5, atol=1e-30)
+        gf, gb = value_and_gradient(stat, pair.mean_f)[1], value_and_gradient(stat, pair.mean_g)[1]
+        # the t interval of the runs' differences of the linearised statistic
+        d = gf @ (vf - vf.mean(1, keepdims=True)) - gb @ (vb - vb.mean(1, keepdims=True))
+        want = t_quantile(0.95, both.sum() - 1) * d.std(ddof=1) / math.sqrt(both.sum())
+        got = paired_half_width(gf, gb, pair.cov_dd, pair.cov_dg, pair.cov_gg, pair.n)
+        if tol == 0.0:
+            assert got == 0.0
+        else:
+            assert 0 < want < 1e-8 and got == pytest.approx(want, rel=tol)
+
+
 def test_auto_runs_stop_once_the_target_is_met_and_equal_a_fixed_run(tmp_path):
     text = LINEAR.replace("runs = 20\nchunk = 20", 'runs = "auto"\ntarget_precision = 0.03\nmax_runs = 20000\nchunk = 50')
     exp = load_experiment(write(tmp_path, text))

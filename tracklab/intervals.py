@@ -107,12 +107,16 @@ def half_width(grad, cov, n, level: float = LEVEL) -> float:
     return t_quantile(level, n - 1) * np.sqrt(max(var, 0.0) / n)
 
 
-def paired_half_width(grad_f, grad_b, cov_ff, cov_bb, cov_fb, n, level: float = LEVEL) -> float:
-    """Half-width of g(m_f) - g(m_b) on the same n runs: the delta method on the joint
-    covariance (cov_fb: covariance of f's samples with b's). Exactly 0 for a filter against itself."""
+def paired_half_width(grad_f, grad_b, cov_dd, cov_db, cov_bb, n, level: float = LEVEL) -> float:
+    """Half-width of g(m_f) - g(m_b) on the same n runs, by the delta method: with D = f's samples
+    − b's and δ = grad_f − grad_b, grad_fᵀ f − grad_bᵀ b = grad_fᵀ D + δᵀ b, whose variance is
+    grad_fᵀ cov_dd grad_f + δᵀ cov_bb δ + 2 grad_fᵀ cov_db δ (cov_db: covariance of D with b's
+    samples). From the differences' own covariance, not as var f + var b − 2 cov(f, b), which
+    cancels: exactly 0 for two filters whose samples agree run by run."""
     if n < 2:
         return float("nan")
-    var = _quad(grad_f, cov_ff, grad_f) + _quad(grad_b, cov_bb, grad_b) - 2.0 * _quad(grad_f, cov_fb, grad_b)
+    delta = grad_f - grad_b
+    var = _quad(grad_f, cov_dd, grad_f) + _quad(delta, cov_bb, delta) + 2.0 * _quad(grad_f, cov_db, delta)
     return t_quantile(level, n - 1) * np.sqrt(max(var, 0.0) / n)
 
 

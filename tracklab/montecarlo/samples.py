@@ -7,15 +7,18 @@ chunks and in float64 whatever the run's precision:
 
 * ``n[f, g]``: runs healthy in both lanes f and g;
 * ``s[f, g, q]``: the sum of lane f's quantity q over those runs;
-* ``cross[f, g, q, r]``: the sum of f's q times g's r over them;
 * ``own[f, g, q, r]``: the sum of f's q times f's r over them;
+* ``sd[f, g, q]``, ``dd[f, g, q, r]``, ``dg[f, g, q, r]``: over the same runs, the sums of the
+  difference D = f's samples − g's, of D_q D_r and of D_q times g's r;
 
-all after subtracting a shift (the first chunk's means), so that variances do
-not cancel. From them, ``pair(f, g)`` gives the means and the joint covariance of
-both lanes on their common runs (f = g: the lane's own). Memory does not grow
-with the runs, except ``kept``: values the world keeps of every healthy run
-(a few numbers per run and lane), for percentiles and distributions.
-Leading axes (a sweep's grid points) are carried throughout.
+each after subtracting a shift (the first chunk's means: of a lane's samples, and of each
+pair's differences), so that variances do not cancel. From them, ``pair(f, g)`` gives both
+lanes' means and covariances on their common runs (f = g: the lane's own), and the covariances
+of their differences, taken from the differences themselves: two filters whose samples agree
+run by run have differences of variance exactly 0, and two that nearly agree the variance that
+``cov_ff + cov_gg − 2 cov_fg`` would round away. Memory does not grow with the runs, except
+``kept``: values the world keeps of every healthy run (a few numbers per run and lane), for
+percentiles and distributions. Leading axes (a sweep's grid points) are carried throughout.
 """
 
 from __future__ import annotations
@@ -33,15 +36,16 @@ class Pair(NamedTuple):
     mean_g: np.ndarray
     cov_ff: np.ndarray  # (Q, Q)
     cov_gg: np.ndarray
-    cov_fg: np.ndarray  # covariance of f's quantities (rows) with g's (columns)
+    cov_dd: np.ndarray  # covariance of the differences D = f's − g's
+    cov_dg: np.ndarray  # covariance of D (rows) with g's quantities (columns)
 
 
 class RunSamples:
     """Streaming moments of per-run samples (see the module's doc)."""
 
     def __init__(self):
-        self.shift = None
-        self.n = self.s = self.cross = self.own = None
+        self.shift = self.dshift = None
+        self.n = self.s = self.own = self.sd = self.dd = self.dg = None
         self._kept: list[np.ndarray] = []
 
     def add(self, values, ok, kept=None):
@@ -51,18 +55,31 @@ class RunSamples:
         ok = np.asarray(ok, bool)
         okf = ok.astype(np.float64)
         v = np.where(ok[..., None, :], values, 0.0)  # a run left out may hold NaN
+        both = ok[..., :, None, :] & ok[..., None, :, :]  # (..., f, g, B)
         if self.shift is None:
             count = np.maximum(okf.sum(-1), 1.0)[..., None]
             self.shift = v.sum(-1) / count  # (..., lanes, Q)
+            pairs = np.maximum(both.sum(-1), 1)[..., None]
+            self.dshift = np.stack([np.where(both[..., f, :, None, :], v[..., f, None, :, :] - v, 0.0).sum(-1)
+                                    for f in range(v.shape[-3])], axis=-3) / pairs  # (..., f, g, Q)
         c = np.where(ok[..., None, :], v - self.shift[..., None], 0.0)
-        parts = (np.einsum("...fb,...gb->...fg", okf, okf),
-                 np.einsum("...fqb,...gb->...fgq", c, okf),
-                 np.einsum("...fqb,...grb->...fgqr", c, c),
-                 np.einsum("...fqb,...frb,...gb->...fgqr", c, c, okf))
+        own, sd, dd, dg = [], [], [], []
+        for f in range(v.shape[-3]):  # one lane against every other at a time: (…, lanes, Q, B) at most
+            c_f = c[..., f, None, :, :] * okf[..., :, None, :]  # f's samples on the runs it shares with each g
+            own.append(c_f @ np.swapaxes(c[..., f, None, :, :], -1, -2))
+            d = np.where(both[..., f, :, None, :], v[..., f, None, :, :] - v - self.dshift[..., f, :, :, None], 0.0)
+            sd.append(d.sum(-1))
+            dd.append(d @ np.swapaxes(d, -1, -2))
+            dg.append(d @ np.swapaxes(c, -1, -2))
+        parts = (okf @ np.swapaxes(okf, -1, -2), np.swapaxes(c @ np.swapaxes(okf, -1, -2)[..., None, :, :], -1, -2),
+                 np.stack(own, axis=-4), np.stack(sd, axis=-3), np.stack(dd, axis=-4), np.stack(dg, axis=-4))
+        names = ("n", "s", "own", "sd", "dd", "dg")
         if self.n is None:
-            self.n, self.s, self.cross, self.own = parts
+            for name, part in zip(names, parts):
+                setattr(self, name, part)
         else:
-            self.n, self.s, self.cross, self.own = (a + b for a, b in zip((self.n, self.s, self.cross, self.own), parts))
+            for name, part in zip(names, parts):
+                setattr(self, name, getattr(self, name) + part)
         if kept is not None:
             self._kept.append(np.where(ok[..., None, :], np.asarray(kept, np.float64), np.nan))
 
@@ -76,18 +93,20 @@ class RunSamples:
     def point(self, j) -> "RunSamples":
         """The samples of grid point ``j`` (a leading axis of every array)."""
         out = RunSamples()
-        out.shift, out.n, out.s, out.cross, out.own = (a[j] for a in (self.shift, self.n, self.s, self.cross, self.own))
+        for name in ("shift", "dshift", "n", "s", "own", "sd", "dd", "dg"):
+            setattr(out, name, getattr(self, name)[j])
         out._kept = [k[j] for k in self._kept]
         return out
 
     def pair(self, f, g) -> Pair:
         """Means and covariances of lanes f and g over the runs healthy in both (f = g: f's own)."""
         n = int(round(self.n[f, g]))
-        s_f, s_g = self.s[f, g], self.s[g, f]
+        s_f, s_g, s_d = self.s[f, g], self.s[g, f], self.sd[f, g]
         nn = max(n, 1)
         mean_f, mean_g = self.shift[f] + s_f / nn, self.shift[g] + s_g / nn
         d = max(n - 1, 1)
         cov_ff = (self.own[f, g] - np.outer(s_f, s_f) / nn) / d
         cov_gg = (self.own[g, f] - np.outer(s_g, s_g) / nn) / d
-        cov_fg = cov_ff if f == g else (self.cross[f, g] - np.outer(s_f, s_g) / nn) / d
-        return Pair(n, mean_f, mean_g, cov_ff, cov_gg, cov_fg)
+        cov_dd = (self.dd[f, g] - np.outer(s_d, s_d) / nn) / d
+        cov_dg = (self.dg[f, g] - np.outer(s_d, s_g) / nn) / d
+        return Pair(n, mean_f, mean_g, cov_ff, cov_gg, cov_dd, cov_dg)

@@ -286,7 +286,7 @@ def lane_intervals(samples, labels, stats, level=LEVEL, baseline=None, paired=()
         for key in paired:
             vf, gf = value_and_gradient(stats[key], pair.mean_f)
             vb, gb = value_and_gradient(stats[key], pair.mean_g)
-            h = paired_half_width(gf, gb, pair.cov_ff, pair.cov_gg, pair.cov_fg, pair.n, level)
+            h = paired_half_width(gf, gb, pair.cov_dd, pair.cov_dg, pair.cov_gg, pair.n, level)
             diff = float(vf - vb) if pair.n > 0 else float("nan")
             rounding = 1e-9 * max(abs(float(vf)), abs(float(vb)))  # same numbers but for the last digits
             if abs(diff) <= rounding and h <= rounding:

@@ -33,12 +33,14 @@ from tracklab.output import atomic_folder, check_results_folder
 from tracklab.worlds.tracking.errors import (
     MAXIMA,
     SUMS,
+    accumulated_count,
     accumulated_lengths,
     lane_sums,
     named,
     run_errors,
     run_samples,
     sample_names,
+    window_sums,
 )
 from tracklab.worlds.tracking.experiment import stats_document, write_results
 from tracklab.worlds.tracking.outcome import MonteCarloResult
@@ -83,7 +85,7 @@ def _recorded_sums(out, truth, wmask, lengths, pv, names):
         acc = acc + run_samples(r, w_k.astype(dtype))
         return (runmax, acc), (sums, maxima)
 
-    carry0 = (jnp.zeros((len(names), d + 1, N), dtype), jnp.zeros((lengths.shape[0], N), dtype))
+    carry0 = (jnp.zeros((len(names), d + 1, N), dtype), jnp.zeros((accumulated_count(d, names), N), dtype))
     (runmax, acc), (sums, maxima) = jax.lax.scan(step, carry0, xs)
     res = named(sums, SUMS, d) | named(maxima, MAXIMA, d)
     for j, name in enumerate(names):
@@ -91,7 +93,7 @@ def _recorded_sums(out, truth, wmask, lengths, pv, names):
     res["diverged"] = jnp.sum(diverged.astype(dtype))
     res["example_x"] = out.x[0][:, pv]
     res["example_var"] = jnp.diagonal(out.P[0][:, pv[:, None], pv[None, :]], axis1=-2, axis2=-1)
-    values = jnp.concatenate([acc / lengths[:, None], runmax.reshape(-1, N)])
+    values = jnp.concatenate([window_sums(acc, d, names) / lengths[:, None], runmax.reshape(-1, N)])
     res["per_run"] = {"values": values, "ok": ~diverged, "kept": jnp.sqrt(values[:1])}
     return res
 

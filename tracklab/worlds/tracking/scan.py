@@ -43,12 +43,14 @@ from tracklab.sensors import SensorSuite
 from tracklab.sensors.clutter import cluttered_of
 from tracklab.worlds.tracking.errors import (
     RunErrors,
+    accumulated_count,
     accumulated_lengths,
     errors_of,
     lane_sums,
     pick,
     run_samples,
     track_loss,
+    window_sums,
     with_errors,
 )
 from tracklab.worlds.tracking.lanes import lane, run_dependence, view_pattern
@@ -135,7 +137,7 @@ def _chunk(structure: TrackingStructure):
         windows = with_report_window(structure.window_masks(), T)
         names = list(windows)  # the report window, then the prediction-error windows
         lengths = accumulated_lengths(d, windows)
-        n_acc = len(lengths)
+        n_acc = accumulated_count(d, names)
         P0_cv = params.P0
         L0 = jnp.linalg.cholesky(P0_cv)
         dtype = L0.dtype
@@ -325,7 +327,8 @@ def _chunk(structure: TrackingStructure):
                 first[key] = {"example_x": run0[:, :2 * d], "example_var": run0[:, 2 * d:]}
                 flags[i] = live & bad_any[j]
                 lost_final[i] = live & lost[j]
-                values[i] = jnp.concatenate([acc[j] / jnp.asarray(lengths, dtype)[:, None], runmax[j].reshape(-1, B)])
+                values[i] = jnp.concatenate([window_sums(acc[j], d, names) / jnp.asarray(lengths, dtype)[:, None],
+                                             runmax[j].reshape(-1, B)])
                 oks[i] = ok
         per_run = None
         if values:  # each run's time-averaged samples, for intervals and paired comparisons
