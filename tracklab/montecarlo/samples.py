@@ -63,15 +63,16 @@ class RunSamples:
             self.dshift = np.stack([np.where(both[..., f, :, None, :], v[..., f, None, :, :] - v, 0.0).sum(-1)
                                     for f in range(v.shape[-3])], axis=-3) / pairs  # (..., f, g, Q)
         c = np.where(ok[..., None, :], v - self.shift[..., None], 0.0)
+        # np.einsum's own loops, not BLAS: OpenBLAS's threads, waiting on after a call, would take the
+        # cores from the next chunk's program
         own, sd, dd, dg = [], [], [], []
         for f in range(v.shape[-3]):  # one lane against every other at a time: (…, lanes, Q, B) at most
-            c_f = c[..., f, None, :, :] * okf[..., :, None, :]  # f's samples on the runs it shares with each g
-            own.append(c_f @ np.swapaxes(c[..., f, None, :, :], -1, -2))
+            own.append(np.einsum("...qb,...rb,...gb->...gqr", c[..., f, :, :], c[..., f, :, :], okf))
             d = np.where(both[..., f, :, None, :], v[..., f, None, :, :] - v - self.dshift[..., f, :, :, None], 0.0)
             sd.append(d.sum(-1))
-            dd.append(d @ np.swapaxes(d, -1, -2))
-            dg.append(d @ np.swapaxes(c, -1, -2))
-        parts = (okf @ np.swapaxes(okf, -1, -2), np.swapaxes(c @ np.swapaxes(okf, -1, -2)[..., None, :, :], -1, -2),
+            dd.append(np.einsum("...gqb,...grb->...gqr", d, d))
+            dg.append(np.einsum("...gqb,...grb->...gqr", d, c))
+        parts = (np.einsum("...fb,...gb->...fg", okf, okf), np.einsum("...fqb,...gb->...fgq", c, okf),
                  np.stack(own, axis=-4), np.stack(sd, axis=-3), np.stack(dd, axis=-4), np.stack(dg, axis=-4))
         names = ("n", "s", "own", "sd", "dd", "dg")
         if self.n is None:
