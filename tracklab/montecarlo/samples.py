@@ -56,31 +56,28 @@ class RunSamples:
         okf = ok.astype(np.float64)
         v = np.where(ok[..., None, :], values, 0.0)  # a run left out may hold NaN
         both = ok[..., :, None, :] & ok[..., None, :, :]  # (..., f, g, B)
-        if self.shift is None:
-            count = np.maximum(okf.sum(-1), 1.0)[..., None]
-            self.shift = v.sum(-1) / count  # (..., lanes, Q)
-            pairs = np.maximum(both.sum(-1), 1)[..., None]
-            self.dshift = np.stack([np.where(both[..., f, :, None, :], v[..., f, None, :, :] - v, 0.0).sum(-1)
-                                    for f in range(v.shape[-3])], axis=-3) / pairs  # (..., f, g, Q)
+        n = both.sum(-1).astype(np.float64)  # (..., f, g)
+        first = self.shift is None
+        if first:
+            self.shift = v.sum(-1) / np.maximum(okf.sum(-1), 1.0)[..., None]  # (..., lanes, Q)
+            self.dshift = np.zeros(n.shape + v.shape[-2:-1])  # (..., f, g, Q), set lane by lane below
         c = np.where(ok[..., None, :], v - self.shift[..., None], 0.0)
         # np.einsum's own loops, not BLAS: OpenBLAS's threads, waiting on after a call, would take the
         # cores from the next chunk's program
         own, sd, dd, dg = [], [], [], []
         for f in range(v.shape[-3]):  # one lane against every other at a time: (…, lanes, Q, B) at most
             own.append(np.einsum("...qb,...rb,...gb->...gqr", c[..., f, :, :], c[..., f, :, :], okf))
-            d = np.where(both[..., f, :, None, :], v[..., f, None, :, :] - v - self.dshift[..., f, :, :, None], 0.0)
+            raw = np.where(both[..., f, :, None, :], v[..., f, None, :, :] - v, 0.0)  # f's samples − each g's
+            if first:
+                self.dshift[..., f, :, :] = raw.sum(-1) / np.maximum(n[..., f, :], 1.0)[..., None]
+            d = np.where(both[..., f, :, None, :], raw - self.dshift[..., f, :, :, None], 0.0)
             sd.append(d.sum(-1))
             dd.append(np.einsum("...gqb,...grb->...gqr", d, d))
             dg.append(np.einsum("...gqb,...grb->...gqr", d, c))
-        parts = (np.einsum("...fb,...gb->...fg", okf, okf), np.einsum("...fqb,...gb->...fgq", c, okf),
-                 np.stack(own, axis=-4), np.stack(sd, axis=-3), np.stack(dd, axis=-4), np.stack(dg, axis=-4))
-        names = ("n", "s", "own", "sd", "dd", "dg")
-        if self.n is None:
-            for name, part in zip(names, parts):
-                setattr(self, name, part)
-        else:
-            for name, part in zip(names, parts):
-                setattr(self, name, getattr(self, name) + part)
+        parts = (n, np.einsum("...fqb,...gb->...fgq", c, okf), np.stack(own, axis=-4), np.stack(sd, axis=-3),
+                 np.stack(dd, axis=-4), np.stack(dg, axis=-4))
+        for name, part in zip(("n", "s", "own", "sd", "dd", "dg"), parts):
+            setattr(self, name, part if first else getattr(self, name) + part)
         if kept is not None:
             self._kept.append(np.where(ok[..., None, :], np.asarray(kept, np.float64), np.nan))
 

@@ -7,7 +7,8 @@ turned bad (NaN/inf, a covariance not positive definite). Per step, over the run
 the sums and maxima of ``SUMS`` and ``MAXIMA`` (``lane_sums``: one variadic reduction per row
 height, ``sum_over_runs``), cut into named quantities after the chunk (``named``, ``unpack``).
 Per run, over the report windows: the samples of ``sample_names`` behind the intervals
-(``run_samples``; a total is summed from its axes after the scan, ``window_sums``). The losses ``tracklab tune`` minimises (``LOSSES``) read the sums.
+(``run_samples``; a total is summed from its axes after the scan, ``window_sums``). The losses
+``tracklab tune`` minimises (``LOSSES``) read the sums.
 """
 
 from __future__ import annotations
@@ -141,22 +142,31 @@ def sample_names(d: int, windows) -> list[tuple[str, int]]:
         names += [(f"sq_pred@{w}", 1), (f"sq_pred_axes@{w}", d)]
     return names + [(f"max_pred@{w}", d + 1) for w in windows]
 
+def _averaged(d: int, windows) -> list[tuple[str, int]]:
+    """The samples of ``sample_names`` that are window means (all but the maxima)."""
+    return [(n, w) for n, w in sample_names(d, windows) if not n.startswith("max_pred@")]
+
+def _axes_of(name: str) -> str | None:
+    """The per-axis samples whose sum is the total ``name`` (``sq_pos``, ``sq_pred@…``); None for a
+    sample summed in the scan."""
+    if name == "sq_pos":
+        return "sq_pos_axes"
+    return name.replace("sq_pred@", "sq_pred_axes@") if name.startswith("sq_pred@") else None
+
 def _accumulated(d: int, windows) -> list[tuple[str, int]]:
-    """The per-run samples summed step by step in the scan: those of ``sample_names`` but the
-    maxima and the totals (``sq_pos``, ``sq_pred@…``), which are the sums of their per-axis rows
-    (``window_sums``)."""
-    return [(n, w) for n, w in sample_names(d, windows)
-            if not n.startswith("max_pred@") and n != "sq_pos" and not n.startswith("sq_pred@")]
+    """The per-run samples summed step by step in the scan: the window means but the totals,
+    which are the sums of their per-axis rows (``window_sums``)."""
+    return [(n, w) for n, w in _averaged(d, windows) if _axes_of(n) is None]
 
 def accumulated_count(d: int, windows) -> int:
     """The rows of ``run_samples``."""
     return sum(w for _, w in _accumulated(d, windows))
 
 def accumulated_lengths(d: int, windows: dict) -> np.ndarray:
-    """Per sample of ``sample_names`` but the maxima, the steps of its window: what a run's window
-    sum (``window_sums``) is divided by."""
-    names = [(n, w) for n, w in sample_names(d, windows) if not n.startswith("max_pred@")]
-    return np.concatenate([np.full(w, windows[n.split("@")[1] if "@" in n else REPORT_WINDOW].sum()) for n, w in names])
+    """Per window mean of ``sample_names``, the steps of its window: what a run's window sum
+    (``window_sums``) is divided by."""
+    return np.concatenate([np.full(w, windows[n.split("@")[1] if "@" in n else REPORT_WINDOW].sum())
+                           for n, w in _averaged(d, windows)])
 
 def run_samples(r: RunErrors, w_k):
     """One step's contributions (Q, B) to each run's sums of the accumulated samples
@@ -171,10 +181,6 @@ def run_samples(r: RunErrors, w_k):
         rows.append(w_k[j] * r.e_pred**2)
     return jnp.concatenate(rows)
 
-def _axes_of(name: str) -> str:
-    """The per-axis samples whose sum is the total ``name`` (``sq_pos``, ``sq_pred@…``)."""
-    return "sq_pos_axes" if name == "sq_pos" else name.replace("sq_pred@", "sq_pred_axes@")
-
 def window_sums(acc, d: int, windows):
     """Each run's accumulated sums ``acc`` (Q, runs) (``run_samples``) laid out as
     ``sample_names`` without the maxima: a total is the sum of its axes' sums. ``windows``: the
@@ -183,7 +189,7 @@ def window_sums(acc, d: int, windows):
     for name, width in _accumulated(d, windows):
         at[name], i = acc[i:i + width], i + width
     return jnp.concatenate([at[name] if name in at else sum_elements(at[_axes_of(name)])[None]
-                            for name, _ in sample_names(d, windows) if not name.startswith("max_pred@")])
+                            for name, _ in _averaged(d, windows)])
 
 def lane_sums(r: RunErrors, ok, runmax, w_k, dtype, lost=None):
     """One step's sums over the runs ``ok`` (B,) of one filter's per-run errors (runs last): the
