@@ -22,7 +22,7 @@ import pytest
 import tracklab
 
 LAYERS = [
-    {"errors", "checks", "interrupts", "runtime", "processes", "progress", "pytree", "parameters", "linalg", "random", "toml_fields", "memory", "output", "models", "sensors",
+    {"errors", "checks", "interrupts", "runtime", "processes", "progress", "pytree", "parameters", "linalg", "batching", "random", "toml_fields", "memory", "output", "models", "sensors",
      "scenarios", "intervals", "montecarlo", "filters", "filtering"},
     {"report"},
     {"worlds"},

@@ -25,7 +25,7 @@ from tracklab.montecarlo.statistics import REPORT_WINDOW
 
 
 class RunErrors(NamedTuple):
-    """One filter's errors at one step, per run (under ``vmap`` with runs last: (…, runs))."""
+    """One filter's errors at one step, per run (batched with the runs last: (…, runs))."""
 
     e: Any  # (2d,) estimate minus truth, CV layout
     nees: Any

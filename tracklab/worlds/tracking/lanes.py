@@ -7,7 +7,8 @@ its one-run step, with the error inputs its output gives, and how its state is b
 state leaf that depends neither on a run's prior mean nor on its measurements (a linear KF's
 covariance when the report pattern is the same in every run) is carried once for all runs
 (``run_dependence``: the step traced once, its dependence read off the jaxpr, which the chunk
-then batches without running the filter's Python again).
+then batches, the runs last in every array (``batching.runs_last``), without running the filter's
+Python again).
 """
 
 from __future__ import annotations
@@ -208,7 +209,7 @@ def hashable(v):
 
 @dataclass(frozen=True)
 class Lane:
-    """One filter inside a chunk's scan: its vmapped step and how its state is batched."""
+    """One filter inside a chunk's scan: its one-run step and how its state is batched."""
 
     init: Callable  # prior (2d,) of one run -> filter state
     body: Callable  # (state, (z_k, truth_k, t_k, present_k, reports_k)) -> (state, ErrorInputs), one run
@@ -289,7 +290,7 @@ def run_dependence(init, body, prior, z_k, truth_k, fixed, may_share):
     every run, i.e. depends neither on a run's prior mean nor on its measurements: a linear KF's
     covariance when the report pattern is the same in every run, looked for only when
     ``may_share``; per leaf of its error inputs, whether it may differ between runs; the error
-    inputs' shapes; the step as its jaxpr replayed, for the chunk's ``vmap``). The step is traced
+    inputs' shapes; the step as its jaxpr replayed, for the chunk's batching). The step is traced
     once: its dependence is iterated on that jaxpr, and the chunk batches the jaxpr rather than
     tracing the filter's Python again."""
     leaves = jax.tree_util.tree_leaves

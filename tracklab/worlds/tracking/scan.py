@@ -2,7 +2,7 @@
 
 A chunk of runs is one ``lax.scan`` over the steps that carries every run's truth and every
 filter's state: at each step the runs' truths advance, their measurements are made, every
-filter steps (``vmap`` over runs) and the errors are reduced over the runs to per-step sums
+filter steps (``batching.runs_last``: batched over the runs, the runs last in every array) and the errors are reduced over the runs to per-step sums
 (and maxima). The random draws of the whole chunk are made first, in float32
 (``tracklab.random``), so nothing of size (runs × steps) is kept in the working precision. One
 scan serves every compared filter, and a filter state that is the same in every run (a linear
@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab import random
+from tracklab.batching import runs_last
 from tracklab.montecarlo import runner
 from tracklab.montecarlo.statistics import REPORT_WINDOW
 from tracklab.sensors import SensorSuite
@@ -179,6 +180,10 @@ def _chunk(structure: TrackingStructure):
             z_views = [z_all if ln.view is None else jax.vmap(ln.view, in_axes=1, out_axes=1)(z_all)
                        for ln in lanes]
         truth_batched = scenario.per_run or not stream
+        # the filters' per-run values with the runs last (batching.runs_last), but for filters of
+        # scans in clutter: their association over a scan's returns runs faster with the runs first
+        # (plain vmap; benchmarks/README.md)
+        runs_axis = 0 if cluttered is not None else -1
         state_axes, states0, err_axes, kinds, bodies = [], [], [], [], []
         for ln in lanes:
             fixed = (t, ln.present, jnp.asarray(ln.reports))
@@ -188,7 +193,7 @@ def _chunk(structure: TrackingStructure):
             shared, varies, inputs, body = run_dependence(ln.init, ln.body, prior[0], z_ex, truth_ex, fixed,
                                                            may_share=ln.present is not None)
             bodies.append(body)
-            state_axes.append(jax.tree_util.tree_map(lambda s: None if s else 0, shared))
+            state_axes.append(jax.tree_util.tree_map(lambda s: None if s else runs_axis, shared))
             states0.append(jax.vmap(ln.init, out_axes=state_axes[-1])(prior))
             # the error inputs that differ between runs carry the runs last; the others (a shared
             # covariance's Pe and S) once
@@ -197,7 +202,7 @@ def _chunk(structure: TrackingStructure):
             kinds.append((in_tree, tuple((a.shape, a.dtype) for a in jax.tree_util.tree_leaves(inputs)), tuple(varies)))
         # filters whose error inputs have the same shapes form a group: their errors, per-step sums
         # and per-run samples are computed together, one set of kernels for the group. A filter
-        # alone has its errors made inside its own vmap over the runs, where XLA fuses them with
+        # alone has its errors made inside its own batched step, where XLA fuses them with
         # the filter's arithmetic (its scan step as fast as before grouping; benchmarks/compile.md)
         groups: dict = {}
         for i, kind in enumerate(kinds):
@@ -208,8 +213,9 @@ def _chunk(structure: TrackingStructure):
             for i in g:
                 alone = len(g) == 1
                 body, out_axes = (with_errors(bodies[i], dtype), -1) if alone else (bodies[i], err_axes[i])
-                steps[i] = jax.vmap(body, in_axes=(state_axes[i], (0, 0 if truth_batched else None, None, None, None)),
-                                    out_axes=(state_axes[i], out_axes))
+                batch = jax.vmap if runs_axis == 0 else functools.partial(runs_last, size=B)
+                steps[i] = batch(body, in_axes=(state_axes[i], (runs_axis, runs_axis if truth_batched else None, None,
+                                                                None, None)), out_axes=(state_axes[i], out_axes))
         carries = []
         for g in groups:
             L = len(g)
@@ -225,7 +231,7 @@ def _chunk(structure: TrackingStructure):
             if len(g) == 1:
                 return jax.tree_util.tree_map(lambda a: a[None], outs[0])
             stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *outs)
-            per_run = jax.vmap(lambda a: errors_of(a, dtype), in_axes=(err_axes[g[0]],), out_axes=-1)
+            per_run = runs_last(lambda a: errors_of(a, dtype), in_axes=(err_axes[g[0]],), out_axes=-1, size=B)
             return jax.vmap(per_run)(stacked)
 
         def group_stats(g, pending, w_k, bad_any, per_run_acc, loss):  # w_k: the step before's windows
@@ -279,7 +285,10 @@ def _chunk(structure: TrackingStructure):
                 for i, state in zip(g, states):
                     present_k, reports_k = lane_in[i]
                     z_f = zv_k[i] if not stream else (z_k if lanes[i].view is None else lanes[i].view(z_k))
-                    state, out_i = steps[i](state, (z_f, truth_k, t_k, present_k, reports_k))
+                    if runs_axis == -1:
+                        z_f = jnp.moveaxis(z_f, 0, -1)
+                    truth_in = jnp.moveaxis(truth_k, 0, runs_axis) if truth_batched else truth_k
+                    state, out_i = steps[i](state, (z_f, truth_in, t_k, present_k, reports_k))
                     new_states.append(state)
                     outs.append(out_i)
                 r = group_errors(g, outs)
