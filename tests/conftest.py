@@ -9,9 +9,10 @@ Each worker runs on a core of its own (its CPU affinity, set before JAX starts; 
 a test starts inherit it) when there are as many cores as workers. XLA sizes its thread pools
 by the cores a process may run on: two workers that may each run on both cores split every
 kernel and every compilation over two threads, and the two workers' threads then fight for
-the cores. On 2 cores the whole suite took 475–488 s with both workers on both cores and 367 s
-with one core each (CPU time 15–15.4 against 11.7 min); one run-bound test alone (a 120-step
-tuning) 12.4 s against 10.0 s.
+the cores. On 2 cores, clean clones run in turn (interleaved pairs): the whole suite took 313.5
+and 277.3 s with one core per worker against 332.4 and 285.8 s with both workers on both cores
+(CPU time 600 and 526 s against 625 and 534 s); one run-bound test alone (a 120-step tuning)
+10.0 s against 12.4 s.
 
 One persistent compilation cache for the whole session, in a fresh temporary folder
 shared by the workers and every subprocess the tests start (the CLI's included): the
