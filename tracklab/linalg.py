@@ -30,8 +30,10 @@ def mm(A, B):
     """Matrix product of small matrices.
 
     A sum of outer products, one per inner index: under ``vmap`` each term is an
-    elementwise multiply, with no reduction. Terms whose factor is known to be zero at
-    trace time (the structural zeros of F, H, G) are skipped.
+    elementwise multiply, with no reduction. When one factor is known at trace time (F, H, G,
+    their transposes), each output row (column) is made of that factor's nonzero entries only,
+    a 1 not multiplied (``_known_times``): a constant-velocity F P Fᵀ costs 16 products instead
+    of 128.
     """
     vec_a, vec_b = A.ndim == 1, B.ndim == 1
     A2 = A[None, :] if vec_a else A
@@ -39,6 +41,9 @@ def mm(A, B):
     ca, cb = _concrete(A2), _concrete(B2)
     dtype = jnp.result_type(A, B)
     n, K, m = A2.shape[0], A2.shape[1], B2.shape[1]
+    if (ca is None) != (cb is None):  # one factor known: each output row (column) from its nonzero terms
+        out = _known_times(ca, B2, dtype) if ca is not None else _known_times(cb.T, A2.T, dtype).T
+        return jnp.reshape(out, (m,) if vec_a else (n,)) if vec_a or vec_b else out
     nonzero = np.ones((n, K, m), bool)
     if ca is not None:
         nonzero &= (ca != 0)[:, :, None]
@@ -58,6 +63,21 @@ def mm(A, B):
     if vec_a or vec_b:
         return jnp.reshape(out, (m,) if vec_a else (n,))
     return out
+
+
+def _known_times(C, B, dtype):
+    """C B for a C known at trace time (a NumPy array): row i is Σₖ C[i, k] B[k] over the k where
+    C[i, k] ≠ 0, in increasing k, a factor of 1 not multiplied. Where B is finite this is ``mm``'s
+    sum of outer products to the bit (its skipped terms add exact zeros); a structurally sparse C
+    (a transition matrix, a selection matrix) costs its nonzero entries only."""
+    rows = []
+    for i in range(C.shape[0]):
+        acc = None
+        for k in np.flatnonzero(C[i]):
+            t = B[k].astype(dtype) if C[i, k] == 1 else np.asarray(C[i, k]) * B[k]
+            acc = t if acc is None else acc + t
+        rows.append(jnp.zeros(B.shape[1:], dtype) if acc is None else acc)
+    return jnp.stack(rows)
 
 
 def symmetrise(P):
