@@ -37,20 +37,28 @@ from tracklab.parameters import Param, positive
 from tracklab.pytree import static
 
 
+def _horizontal_range(x, y):
+    """√(x²+y²) as it reads, not ``jnp.hypot``: hypot's guards against overflow (no range a
+    sensor sees comes near 1e154 m) make its derivative, which every EKF step takes, several
+    times dearer (the lidar EKF's step alone: 6.4 M runs·steps/s on a core with hypot, 8.0 M
+    without; benchmarks/README.md)."""
+    return jnp.sqrt(x * x + y * y)
+
+
 def polar_h(p):
     x, y = p[..., 0], p[..., 1]
-    return jnp.stack([jnp.hypot(x, y), jnp.arctan2(y, x)], axis=-1)
+    return jnp.stack([_horizontal_range(x, y), jnp.arctan2(y, x)], axis=-1)
 
 
 def spherical_h(p):
     x, y, z = p[..., 0], p[..., 1], p[..., 2]
-    rho = jnp.hypot(x, y)
+    rho = _horizontal_range(x, y)
     return jnp.stack([jnp.sqrt(rho**2 + z**2), jnp.arctan2(y, x), jnp.arctan2(z, rho)], axis=-1)
 
 
 def angles_h(p):
     x, y, z = p[..., 0], p[..., 1], p[..., 2]
-    return jnp.stack([jnp.arctan2(y, x), jnp.arctan2(z, jnp.hypot(x, y))], axis=-1)
+    return jnp.stack([jnp.arctan2(y, x), jnp.arctan2(z, _horizontal_range(x, y))], axis=-1)
 
 
 def cartesian_h(p):
