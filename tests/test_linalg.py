@@ -4,6 +4,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from tracklab.batching import runs_last
 from tracklab.linalg import expm, host_expm, jacobian, mm, solve, symmetrise
 from tracklab.models import cv
 
@@ -20,6 +21,14 @@ def test_products_equal_numpy_under_vmap(shapes):
     if sa == (4, 4):
         const = jax.jit(jax.vmap(lambda b: mm(F, b)))(Bm)
         np.testing.assert_allclose(const, np.einsum("ij,bj...->bi...", F, Bm), rtol=1e-13, atol=1e-13)
+        # a known factor's zeros and ones skipped, on either side, batched either way: the same
+        # numbers to the bit as the product with that factor traced
+        known = lambda b: (mm(F, b), mm(b, F.T))
+        traced = jax.jit(jax.vmap(lambda f, b: (mm(f, b), mm(b, f.T)), in_axes=(None, 0)))(F, Bm)
+        last = jax.jit(runs_last(known, in_axes=(-1,), size=B))(np.moveaxis(Bm, 0, -1))
+        for got in (jax.jit(jax.vmap(known))(Bm), tuple(np.moveaxis(g, -1, 0) for g in last)):
+            for g, t in zip(got, traced):
+                np.testing.assert_array_equal(g, t)
     np.testing.assert_allclose(both, np.matmul(A, Bm[..., None])[..., 0] if len(sb) == 1 else
                                (np.einsum("bi,bij->bj", A, Bm) if len(sa) == 1 else np.matmul(A, Bm)),
                                rtol=1e-13, atol=1e-13)
