@@ -39,8 +39,8 @@ from tracklab.pytree import static
 
 def _horizontal_range(x, y):
     """√(x²+y²) as it reads, not ``jnp.hypot``: hypot's guards against overflow (no range a
-    sensor sees comes near 1e154 m) make its derivative, which every EKF step takes, several
-    times dearer (the lidar EKF's step alone: 6.4 M runs·steps/s on a core with hypot, 8.0 M
+    sensor sees comes near 1e154 m) are selects and divisions in its derivative too, which every
+    EKF step takes (the lidar EKF's step alone: 6.4 M runs·steps/s on a core with hypot, 8.0 M
     without; benchmarks/README.md)."""
     return jnp.sqrt(x * x + y * y)
 
