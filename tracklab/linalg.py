@@ -41,25 +41,15 @@ def mm(A, B):
     ca, cb = _concrete(A2), _concrete(B2)
     dtype = jnp.result_type(A, B)
     n, K, m = A2.shape[0], A2.shape[1], B2.shape[1]
-    if (ca is None) != (cb is None):  # one factor known: each output row (column) from its nonzero terms
-        out = _known_times(ca, B2, dtype) if ca is not None else _known_times(cb.T, A2.T, dtype).T
-        return jnp.reshape(out, (m,) if vec_a else (n,)) if vec_a or vec_b else out
-    nonzero = np.ones((n, K, m), bool)
     if ca is not None:
-        nonzero &= (ca != 0)[:, :, None]
-    if cb is not None:
-        nonzero &= (cb != 0)[None, :, :]
-    out = None
-    for k in range(K):
-        if not nonzero[:, k, :].any():
-            continue
-        # column k of A times row k of B, each one static slice (a NumPy slice for a constant)
-        a = ca[:, k:k + 1] if ca is not None else jax.lax.slice_in_dim(A2, k, k + 1, axis=1)
-        b = cb[k:k + 1, :] if cb is not None else jax.lax.slice_in_dim(B2, k, k + 1, axis=0)
-        t = a * b
-        out = t if out is None else out + t
-    if out is None:
-        out = jnp.zeros((n, m), dtype)
+        out = _known_times(ca, B2, dtype)
+    elif cb is not None:
+        out = _known_times(cb.T, A2.T, dtype).T
+    else:  # column k of A times row k of B, each one static slice
+        out = jnp.zeros((n, m), dtype) if K == 0 else None
+        for k in range(K):
+            t = jax.lax.slice_in_dim(A2, k, k + 1, axis=1) * jax.lax.slice_in_dim(B2, k, k + 1, axis=0)
+            out = t if out is None else out + t
     if vec_a or vec_b:
         return jnp.reshape(out, (m,) if vec_a else (n,))
     return out
