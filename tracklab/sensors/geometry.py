@@ -32,17 +32,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab import random
-from tracklab.linalg import jacobian, mm
+from tracklab.linalg import jacobian, mm, norm
 from tracklab.parameters import Param, positive
 from tracklab.pytree import static
 
 
 def _horizontal_range(x, y):
-    """√(x²+y²) as it reads, not ``jnp.hypot``: hypot's guards against overflow (no range a
+    """√(x²+y²) (``linalg.norm``), not ``jnp.hypot``: hypot's guards against overflow (no range a
     sensor sees comes near 1e154 m) are selects and divisions in its derivative too, which every
     EKF step takes (the lidar EKF's step alone: 6.4 M runs·steps/s on a core with hypot, 8.0 M
     without; benchmarks/README.md)."""
-    return jnp.sqrt(x * x + y * y)
+    return norm(jnp.stack([x, y]))
 
 
 def polar_h(p):
