@@ -244,6 +244,14 @@ def test_ekf_and_strong_tracking_refuse(factory, change, exc, argument):
     assert msg.startswith(f"{where}: {argument}"), msg
 
 
+@pytest.mark.parametrize("columns", [(1,), (1, 0), [0], (0, 2), ()])
+def test_ekf_refuses_columns_that_leave_out_what_h_reads(columns):
+    """h reads x[0] of a 2-state: (0,) or (0, 1) are the columns it may be given."""
+    msg = _refused(lambda: ekf(_f, _h, KF_ARGS["Q"], KF_ARGS["R"], columns=columns), ValueError,
+                   "tracklab.filters.ekf", "columns")
+    assert msg.startswith("tracklab.filters.ekf: columns"), msg
+
+
 @pytest.mark.parametrize("change, exc, argument", [
     (dict(rho=0.0), ValueError, "rho"),
     (dict(rho=1.5), ValueError, "rho"),
@@ -261,6 +269,8 @@ def test_ekf_and_strong_tracking_take_valid_models():
     G = np.array([[0.5], [1.0]])
     ekf(_f, _h, G @ G.T, KF_ARGS["R"], angle_mask=(True,))
     ekf(_f, _h, KF_ARGS["Q"], KF_ARGS["R"], angle_mask=[0])
+    ekf(_f, _h, KF_ARGS["Q"], KF_ARGS["R"], columns=(0,))
+    ekf(_f, _h, KF_ARGS["Q"], KF_ARGS["R"], columns=(0, 1))
     strong_tracking(_f, _h, [[0.01, 0.0], [0.0, 0.0]], [[1.0]], rho=1.0, b=2.5)
 
 

@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from tracklab.batching import runs_last
 from tracklab.filters import Gaussian, Meas, ekf_update, innovation, kalman_filter, predict
 from tracklab.filters import update as eager_update
 
@@ -109,6 +110,48 @@ def test_ekf_update_by_autodiff_equals_the_analytic_jacobian():
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(np.asarray(b)).max())
 
 
+def test_an_update_on_some_columns_is_the_full_update(problem):
+    """H zero outside the state components ``columns`` names, given as those columns only: the
+    same update as with the whole H, one run or many with the runs last, a component absent or
+    not; the EKF's H formed on those columns; a columns tuple that does not fit refused."""
+    p = problem
+    cols = (0, 2)
+    H = np.zeros((M, N))
+    H[:, cols] = p["H"][:, cols]
+    z = p["z"].copy()
+    z[1] = np.nan
+    rng = np.random.default_rng(3)
+    xs = p["x"] + rng.normal(size=(6, N))
+
+    def both(x, z):
+        g = Gaussian(x, jnp.asarray(p["P"]))
+        return (eager_update(g, z, jnp.asarray(H), jnp.asarray(p["R"])),
+                eager_update(g, z, jnp.asarray(H[:, cols]), jnp.asarray(p["R"]), columns=cols))
+
+    one = jax.jit(both)(jnp.asarray(p["x"]), jnp.asarray(z))
+    many = jax.jit(runs_last(both, in_axes=(-1, None), size=6))(jnp.asarray(xs.T), jnp.asarray(p["z"]))
+    for full, some in (one, many):
+        for a, b in zip(full, some):
+            np.testing.assert_allclose(b, a, rtol=1e-13, atol=1e-13 * np.abs(np.asarray(a)).max())
+    want = numpy_joseph(xs[4], p["P"], H, p["R"], p["z"])
+    np.testing.assert_allclose(many[1].P[..., 4], want[1], rtol=1e-12, atol=1e-12 * np.abs(want[1]).max())
+
+    x = np.array([3000.0, 20.0, -4000.0, 5.0])
+    g = Gaussian(jnp.asarray(x), jnp.asarray(np.diag([100.0, 10.0, 100.0, 10.0]) ** 2))
+    ekf = jax.jit(ekf_update, static_argnums=2, static_argnames=("angles", "columns"))
+    zr, R = jnp.array([5010.0, np.arctan2(x[2], x[0]) + 0.01]), jnp.diag(jnp.array([25.0**2, 0.003**2]))
+    for a, b in zip(ekf(g, zr, range_bearing, R, angles=(False, True)),
+                    ekf(g, zr, range_bearing, R, angles=(False, True), columns=(0, 2))):
+        np.testing.assert_allclose(b, a, rtol=1e-13, atol=1e-13 * np.abs(np.asarray(a)).max())
+    for bad in ((2, 0), (0, 4), [0, 2], ()):
+        with pytest.raises(ValueError, match="columns"):
+            eager_update(Gaussian(jnp.asarray(p["x"]), jnp.asarray(p["P"])), jnp.asarray(p["z"]),
+                         jnp.asarray(H[:, cols]), jnp.asarray(p["R"]), columns=bad)
+    with pytest.raises(ValueError, match=r"expected \(m, 2\) for the columns \(0, 2\)"):
+        eager_update(Gaussian(jnp.asarray(p["x"]), jnp.asarray(p["P"])), jnp.asarray(p["z"]), jnp.asarray(H),
+                     jnp.asarray(p["R"]), columns=cols)
+
+
 def test_the_gradient_through_update_is_the_finite_difference(problem):
     p = problem
     z = p["z"].copy()
@@ -172,7 +215,7 @@ def test_vmap_with_a_shared_pattern_and_float32(problem):
     assert u.x.shape == (5, N)
     np.testing.assert_array_equal(u.P, np.broadcast_to(u.P[0], u.P.shape))
     with jax.enable_x64(False):
-        f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+        f32 = lambda a: jnp.asarray(a, jnp.float32)
         v = update(Gaussian(f32(p["x"]), f32(p["P"])), f32(zs[0]), f32(p["H"]), f32(p["R"]), present=present)
         assert v.x.dtype == v.P.dtype == v.S.dtype == jnp.float32
     np.testing.assert_allclose(v.x, u.x[0], rtol=1e-4, atol=1e-5)

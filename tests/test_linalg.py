@@ -83,3 +83,31 @@ def test_solve_equals_numpy_on_transition_matrices():
     np.testing.assert_allclose(jax.jit(jax.vmap(solve))(A, B), np.linalg.solve(A, B), rtol=1e-11, atol=1e-12)
     np.testing.assert_allclose(jax.vmap(solve)(A, B[..., 0]), np.linalg.solve(A, B[..., :1])[..., 0], rtol=1e-11,
                                atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["lidar_crossing", "laser_ir_alpha_beta", "error_space_overflight", "tuning_stf"])
+def test_a_filter_built_inside_a_trace_keeps_its_known_matrices(name):
+    """The chunk builds its filters inside its own trace, where ``jnp.asarray`` of a model's F or
+    H is a staged constant that ``mm`` cannot read: each bundled filter's step then multiplies by
+    their zeros. Built inside a trace or outside it, a filter's step has the same products."""
+    from pathlib import Path
+
+    from tracklab.config import load_experiment
+    from tracklab.filters.core import Meas, Prior
+    from tracklab.models import MODELS
+
+    exp = load_experiment(Path(__file__).resolve().parent.parent / "experiments" / f"{name}.toml")
+    params = exp.params()
+    for fc, p in zip(exp.filters, params.filters):
+        lane = exp.lane(fc)
+        if not hasattr(lane, "kind"):  # a plug-in's own filter
+            continue
+        n = MODELS[lane.model](exp.scenario.dim, exp.scenario.dt).n
+        m = lane.sees(exp.sensor)[1].m
+        meas = Meas(jnp.zeros(m), jnp.asarray(1.0), jnp.asarray(True))
+        realise = lambda: lane.realise(exp.scenario, exp.sensor, p, 0.0).filter  # noqa: E731
+        state = realise().init(p, Prior(jnp.zeros(n), jnp.eye(n)))
+        outside = realise()
+        products = [str(jax.make_jaxpr(step)(p, state)).count(" mul ")
+                    for step in (lambda p, s: outside.step(p, s, meas)[0], lambda p, s: realise().step(p, s, meas)[0])]
+        assert products[0] == products[1], (name, fc.label, products)

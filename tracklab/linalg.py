@@ -75,8 +75,9 @@ def symmetrise(P):
     return 0.5 * (P + jnp.swapaxes(P, -1, -2))
 
 
-def jacobian(f, x):
-    """∂f/∂x of f: (n,) -> (m,) at x, one forward-mode column per state component.
+def jacobian(f, x, columns=None):
+    """∂f/∂x of f: (n,) -> (m,) at x, one forward-mode column per state component; with
+    ``columns`` (a tuple of components) only theirs, (m, len(columns)).
 
     ``jax.jacfwd`` pushes the n tangents through f as one batch: under ``vmap`` over runs
     each intermediate is then a (runs, n) array. Column by column every intermediate is
@@ -84,7 +85,7 @@ def jacobian(f, x):
     """
     _, f_jvp = jax.linearize(f, x)  # f traced once, its linear map applied to each unit tangent
     eye = np.eye(x.shape[0], dtype=x.dtype)
-    return jnp.stack([f_jvp(e) for e in eye], axis=-1)
+    return jnp.stack([f_jvp(eye[k]) for k in (range(x.shape[0]) if columns is None else columns)], axis=-1)
 
 
 def cholesky(A):

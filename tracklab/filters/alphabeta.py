@@ -117,10 +117,9 @@ def model_alpha_beta(model, sensor, params, gains="kalata", floor=None, conversi
     order, dim = model.order, model.dim
     # the gains' T is the update interval: the sensor's period when it reports less often than every step
     T = float(getattr(sensor, "period", 0.0) or model.F[0, 1])
-    F = jnp.asarray(model.F)
+    F = model.F  # F and H in NumPy: known when built inside a trace (``mm`` skips their zeros)
     H = np.zeros((dim, model.n))
     H[np.arange(dim), np.array(model.pos_idx)] = 1.0
-    H = jnp.asarray(H)
     kalata = kalata_alpha_beta if order == 2 else kalata_alpha_beta_gamma
     growing = growing_memory_alpha_beta if order == 2 else growing_memory_alpha_beta_gamma
     convert = None if sensor.linear else CONVERSIONS[conversion]

@@ -78,37 +78,70 @@ def innovation(z, z_pred, angles=None):
     return jnp.where(jnp.asarray(angles), wrap_angle(nu), nu)
 
 
-def joseph_covariance(P, K, H, R):
+def joseph_covariance(P, K, H, R, columns=None):
     """The covariance after an update with any gain K, in Joseph form:
-    (I − K H) P (I − K H)ᵀ + K R Kᵀ, symmetrised (positive semi-definite whatever K)."""
-    IKH = jnp.eye(P.shape[-1], dtype=P.dtype) - mm(K, H)
-    return symmetrise(mm(mm(IKH, P), IKH.T) + mm(mm(K, R), K.T))
+    (I − K H) P (I − K H)ᵀ + K R Kᵀ, symmetrised (positive semi-definite whatever K).
+    ``columns`` as ``innovation_update``'s: H holds only those columns of the state's."""
+    if columns is None:
+        IKH = jnp.eye(P.shape[-1], dtype=P.dtype) - mm(K, H)
+        return symmetrise(mm(mm(IKH, P), IKH.T) + mm(mm(K, R), K.T))
+    KH = mm(K, H)  # the columns of K H that are not zero
+    A = _identity_minus(KH, columns, P)  # (I − K H) P
+    return symmetrise(_identity_minus(KH, columns, A.T).T + mm(mm(K, R), K.T))  # A (I − K H)ᵀ
 
 
-def _check_shapes(where: str, g: Gaussian, **arrays):
+def _identity_minus(KH, columns, B):
+    """(I − K H) B = B − Σ (K H)[:, k] B[k] over the k in ``columns``, K H being zero elsewhere
+    (``KH``: those columns, (n, len(columns))): one outer product per column."""
+    out = B
+    for c, k in enumerate(columns):
+        out = out - KH[:, c:c + 1] * B[k:k + 1]
+    return out
+
+
+def check_columns(where: str, n: int, columns):
+    """``ValueError`` unless ``columns`` is None or increasing state components (of n)."""
+    if columns is None:
+        return
+    ok = (isinstance(columns, tuple) and len(columns) > 0 and all(isinstance(k, int) and 0 <= k < n for k in columns)
+          and list(columns) == sorted(set(columns)))
+    if not ok:
+        raise ValueError(f"{where}: columns {columns!r}: expected a tuple of increasing state components in 0..{n - 1}")
+
+
+def _check_shapes(where: str, g: Gaussian, columns=None, **arrays):
     """``ValueError`` when the arrays of an update do not fit one measurement of m components (H's
-    rows) and the state of n = len(g.x): z, h_x, nu, present (m,), H (m, n), R (m, m). Shapes are
-    known when tracing, so a measurement of the wrong size is refused there instead of broadcast."""
+    rows) and the state of n = len(g.x): z, h_x, nu, present (m,), H (m, n) (with ``columns``:
+    (m, len(columns))), R (m, m). Shapes are known when tracing, so a measurement of the wrong
+    size is refused there instead of broadcast."""
     n = jnp.shape(g.x)[-1]
+    check_columns(where, n, columns)
+    n_h = n if columns is None else len(columns)
     shapes = {k: tuple(jnp.shape(a)) for k, a in arrays.items() if a is not None}
-    if len(shapes["H"]) != 2 or shapes["H"][1] != n:
-        raise ValueError(f"{where}: H has shape {shapes['H']}: expected (m, {n}) for a state of {n}")
+    if len(shapes["H"]) != 2 or shapes["H"][1] != n_h:
+        what = f"a state of {n}" if columns is None else f"the columns {columns} of a state of {n}"
+        raise ValueError(f"{where}: H has shape {shapes['H']}: expected (m, {n_h}) for {what}")
     m = shapes["H"][0]
-    want = {"z": (m,), "h_x": (m,), "nu": (m,), "present": (m,), "H": (m, n), "R": (m, m)}
+    want = {"z": (m,), "h_x": (m,), "nu": (m,), "present": (m,), "H": (m, n_h), "R": (m, m)}
     if any(shape != want[k] for k, shape in shapes.items()):
         raise ValueError(f"{where}: {', '.join(f'{k} {s}' for k, s in shapes.items())}: expected "
                          f"{', '.join(f'{k} {want[k]}' for k in shapes)} (m = {m}, H's rows; n = {n})")
 
 
-def innovation_update(g: Gaussian, nu, H, R, *, present=None) -> Update:
+def innovation_update(g: Gaussian, nu, H, R, *, present=None, columns=None) -> Update:
     """The Kalman update of ``g`` on an innovation ν (m,) already formed: S = H P Hᵀ + R,
     K = P Hᵀ S⁻¹, x⁺ = x + K ν, P⁺ = (I − K H) P (I − K H)ᵀ + K R Kᵀ (Joseph form).
 
     Only the components ``present`` flags (default: all) are used: the others' rows of H and
     ν are zeroed and their R entries replaced by an uncoupled unit variance, so they change
     neither mean nor covariance (none used: the prior is kept).
+
+    ``columns``: the state components the measurement depends on, increasing (a position
+    sensor's: the positions), H then holding only their columns (m, len(columns)); the others
+    are zero and cost nothing (P Hᵀ reads those columns of P, (I − K H) has the identity's
+    columns elsewhere). The same update to the rounding.
     """
-    _check_shapes("innovation_update", g, nu=nu, H=H, R=R, present=present)
+    _check_shapes("innovation_update", g, columns, nu=nu, H=H, R=R, present=present)
     if present is None:
         used = jnp.ones(jnp.shape(nu), bool)
     else:
@@ -116,29 +149,42 @@ def innovation_update(g: Gaussian, nu, H, R, *, present=None) -> Update:
         H = jnp.where(used[:, None], H, 0.0)
         nu = jnp.where(used, nu, 0.0)
         R = jnp.where(used[:, None] & used[None, :], R, jnp.eye(R.shape[-1], dtype=R.dtype))
-    PHt = mm(g.P, H.T)
-    S = mm(H, PHt) + R
+    if columns is None:
+        PHt = mm(g.P, H.T)
+        S = mm(H, PHt) + R
+    else:
+        PHt = mm(jnp.stack([g.P[:, k] for k in columns], axis=-1), H.T)
+        S = mm(H, jnp.stack([PHt[k] for k in columns])) + R
     K = mm(PHt, spd_inverse(S))
-    return Update(g.x + mm(K, nu), joseph_covariance(g.P, K, H, R), nu, S, used)
+    return Update(g.x + mm(K, nu), joseph_covariance(g.P, K, H, R, columns), nu, S, used)
 
 
-def update(g: Gaussian, z, H, R, *, h_x=None, angles=None, present=None) -> Update:
+def update(g: Gaussian, z, H, R, *, h_x=None, angles=None, present=None, columns=None) -> Update:
     """Kalman measurement update of the prediction ``g`` with z (m,), H (m, n), R (m, m).
 
     ν = z − ẑ with ẑ = H x (or ``h_x``, a nonlinear h(x) already evaluated), the components
     flagged in ``angles`` wrapped to (-π, π] (``innovation``), then ``innovation_update``
     (Joseph form) with the components ``present`` flags, by default the finite ones of z
     (NaN = absent). ``present`` known without looking at z (a report pattern shared by
-    every run) keeps the covariance independent of the measurement.
+    every run) keeps the covariance independent of the measurement. ``columns`` as
+    ``innovation_update``'s (H then holds those columns only; ẑ = H x over them).
     """
-    _check_shapes("update", g, z=z, H=H, h_x=h_x)
-    nu = innovation(z, mm(H, g.x) if h_x is None else h_x, angles)
-    return innovation_update(g, nu, H, R, present=jnp.isfinite(z) if present is None else present)
+    _check_shapes("update", g, columns, z=z, H=H, h_x=h_x)
+    if h_x is None:
+        h_x = mm(H, g.x if columns is None else jnp.stack([g.x[k] for k in columns]))
+    nu = innovation(z, h_x, angles)
+    return innovation_update(g, nu, H, R, present=jnp.isfinite(z) if present is None else present, columns=columns)
 
 
-def ekf_update(g: Gaussian, z, h, R, *, angles=None, present=None) -> Update:
-    """Extended update: ``update`` with ẑ = h(x) and H = ∂h/∂x at the prediction (autodiff)."""
-    return update(g, z, jacobian(h, g.x), R, h_x=h(g.x), angles=angles, present=present)
+def ekf_update(g: Gaussian, z, h, R, *, angles=None, present=None, columns=None) -> Update:
+    """Extended update: ``update`` with ẑ = h(x) and H = ∂h/∂x at the prediction (autodiff).
+
+    ``columns``: the state components h reads, increasing (the positions, for a sensor of the
+    position): only their columns of H are computed, and the update skips the others, which
+    are zero (``innovation_update``). h must not read any other component.
+    """
+    check_columns("ekf_update", jnp.shape(g.x)[-1], columns)
+    return update(g, z, jacobian(h, g.x, columns), R, h_x=h(g.x), angles=angles, present=present, columns=columns)
 
 
 # ------------------------------------------------------------------------- assembly

@@ -72,13 +72,13 @@ def model_error_space(model, m: int, params, guide: str = "previous", delay: int
     if guide == "previous" and delay:
         raise ValueError("a delay applies to an external guide only")
     n_lag = 1 + int(delay)  # L(k) is the target n_lag periods earlier
-    F = jnp.asarray(model.F)
-    H_np = np.zeros((m, model.n))
-    H_np[np.arange(m), np.array(model.pos_idx)] = 1.0
-    H = jnp.asarray(H_np)
+    # the model's matrices in NumPy: known when built inside a trace (``mm`` skips their zeros)
+    F = model.F
+    H = np.zeros((m, model.n))
+    H[np.arange(m), np.array(model.pos_idx)] = 1.0
     F_inv = np.linalg.inv(model.F)
-    L_map = jnp.asarray(np.linalg.matrix_power(F_inv, n_lag - 1))
-    E_map = jnp.asarray(np.eye(model.n) - np.linalg.matrix_power(F_inv, n_lag))
+    L_map = np.linalg.matrix_power(F_inv, n_lag - 1)
+    E_map = np.eye(model.n) - np.linalg.matrix_power(F_inv, n_lag)
 
     def init(p, prior):
         x0, P0 = jnp.asarray(prior.x), jnp.asarray(prior.P)

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from tracklab.checks import check_state_space
-from tracklab.filters.blocks import Update, ekf_predict, ekf_update, kalman_filter, predict, update
+from tracklab.filters.blocks import Update, check_columns, ekf_predict, ekf_update, kalman_filter, predict, update
 from tracklab.filters.core import Filter
 from tracklab.filters.kind import ANY_SENSOR, NOISE, Entry, FilterKind, noise, read_noise
 from tracklab.sensors import CONVERSIONS
@@ -47,27 +47,45 @@ def kf(F, H, Q, R) -> Filter:
     return kalman_filter(params, time_update, measurement_update)
 
 
-def ekf(f, h, Q, R, *, angle_mask=None) -> Filter:
+def ekf(f, h, Q, R, *, angle_mask=None, columns=None) -> Filter:
     """Extended Kalman filter for x' = f(x) + w, z = h(x) + v; params {Q, R}.
 
     Jacobians of f and h come from autodiff; innovation components flagged
-    in ``angle_mask`` are wrapped to (-π, π].
+    in ``angle_mask`` are wrapped to (-π, π]; ``columns``: the state components h reads, when
+    it reads only some (``ekf_update``).
 
     Refused in one line naming the argument (``checks.check_state_space``): Q not an (n, n)
     finite symmetric positive semi-definite matrix, R not an (m, m) finite symmetric positive
     definite one, f or h not a function that traces on a state of n to (n,) and (m,),
-    ``angle_mask`` not m flags.
+    ``angle_mask`` not m flags, ``columns`` not increasing state components or leaving out one
+    that h reads (∂h/∂x not zero outside them at three random states).
     """
     check_state_space("tracklab.filters.ekf", Q=Q, R=R, f=f, h=h, angle_mask=angle_mask)
+    _check_h_columns("tracklab.filters.ekf", h, np.shape(Q)[0], columns)
     params = {"Q": jnp.asarray(Q), "R": jnp.asarray(R)}
 
     def time_update(p, g):
         return ekf_predict(g, f, p["Q"])
 
     def measurement_update(p, g, z, present):
-        return ekf_update(g, z, h, p["R"], angles=angle_mask, present=present)
+        return ekf_update(g, z, h, p["R"], angles=angle_mask, present=present, columns=columns)
 
     return kalman_filter(params, time_update, measurement_update)
+
+
+def _check_h_columns(where: str, h, n: int, columns):
+    """``ValueError`` unless ``columns`` is None or increasing state components (of n) that
+    include every one h reads: ∂h/∂x is zero outside them at three random states."""
+    check_columns(where, n, columns)
+    if columns is None:
+        return
+    others = [k for k in range(n) if k not in columns]
+    for x in np.random.default_rng(0).normal(0.0, 1e3, (3, n)):
+        J = np.asarray(jax.jacfwd(h)(jnp.asarray(x)))
+        read = [k for k in others if np.any(J[:, k] != 0)]
+        if read:
+            raise ValueError(f"{where}: columns {columns}: h reads state component {read[0]} as well "
+                             f"(∂h/∂x[{read[0]}] is not zero); name every component h reads")
 
 
 # ------------------------------------------------------------ experiment filters
@@ -78,7 +96,7 @@ def noise_params(q, r):
 
 
 def _model_predict(model):
-    F = jnp.asarray(model.F)
+    F = model.F  # NumPy: known when the filter is built inside a trace, so ``mm`` skips its zeros
 
     def time_update(p, g):
         return predict(g, F, model.Q(p["q"]))
@@ -95,7 +113,6 @@ def model_kf(model, sensor, params) -> Filter:
     """KF with linear sensors (each observes the frame's position; a suite stacks them)."""
     H = np.zeros((sensor.m, model.n))
     H[np.arange(sensor.m), np.array(model.pos_idx)[np.arange(sensor.m) % model.dim]] = 1.0
-    H = jnp.asarray(H)
 
     def measurement_update(p, g, z, present):
         return update(g, z, H, jnp.diag(p["r"]), present=present)
@@ -104,11 +121,13 @@ def model_kf(model, sensor, params) -> Filter:
 
 
 def model_ekf(model, sensor, params) -> Filter:
-    """EKF: H = ∂h/∂x at the prediction (paper 000 eq. 21)."""
+    """EKF: H = ∂h/∂x at the prediction (paper 000 eq. 21); h reads the positions only, so only
+    their columns of H are formed and used."""
     h = _h_state(model, sensor)
+    positions = tuple(sorted(int(i) for i in model.pos_idx))
 
     def measurement_update(p, g, z, present):
-        return ekf_update(g, z, h, jnp.diag(p["r"]), angles=sensor.angle_mask, present=present)
+        return ekf_update(g, z, h, jnp.diag(p["r"]), angles=sensor.angle_mask, present=present, columns=positions)
 
     return kalman_filter(params, _model_predict(model), measurement_update)
 
@@ -120,7 +139,6 @@ def model_cmkf(model, sensor, params, debias="plain") -> Filter:
     convert = CONVERSIONS[debias]
     H = np.zeros((model.dim, model.n))
     H[np.arange(model.dim), np.array(model.pos_idx)] = 1.0
-    H = jnp.asarray(H)
 
     def measurement_update(p, g, z, present):
         zc, Rc = convert(z, jnp.sqrt(p["r"]))

@@ -11,6 +11,7 @@ Jacobian of the polar→Cartesian map).
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 from tracklab.filters.blocks import Gaussian, kalman_filter, predict, update
 from tracklab.filters.core import Prior
@@ -32,8 +33,9 @@ def cartesian_to_polar(x):
 
 def model_polar_kf(dt, sensor, params):
     T = dt
-    F = jnp.array([[1.0, T, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, T], [0, 0, 0, 1.0]])
-    H = jnp.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0]])
+    # F and H in NumPy: known when built inside a trace (``mm`` skips their zeros)
+    F = np.array([[1.0, T, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, T], [0, 0, 0, 1.0]])
+    H = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0]])
 
     def init(p, prior: Prior):
         J = jacobian(cartesian_to_polar, prior.x)

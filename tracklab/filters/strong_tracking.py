@@ -106,7 +106,7 @@ def strong_tracking(f, h, Q, R, *, rho=0.95, b=1.0, angle_mask=None) -> Filter:
 
 def model_stf(model, sensor, params) -> Filter:
     """The STF on a kinematic model and an experiment's sensor; params {q, r, rho, b}."""
-    F = jnp.asarray(model.F)
+    F = model.F  # NumPy: known when built inside a trace (``mm`` skips its zeros)
     pos = tuple(model.pos_idx)
 
     def h(x):
