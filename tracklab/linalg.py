@@ -129,17 +129,43 @@ def norm(v):
     return jnp.sqrt(sum_elements(v * v))
 
 
+def _ldl_whitened(A, v):
+    """(Σⱼ yⱼ² / Dⱼ, [Dⱼ]) for A = L D Lᵀ, L unit lower triangular and L y = v: no square root
+    and one division a row, where a Cholesky factor takes a square root and a division a row and
+    its forward substitution another division (NaN from the first Dⱼ ≤ 0: A not positive
+    definite)."""
+    n = A.shape[-1]
+    zero = jnp.zeros_like(A[0, 0])
+    W = [[None] * n for _ in range(n)]  # W[i][k] = L[i][k] Dₖ, k < i
+    L = [[None] * n for _ in range(n)]
+    D, y, total = [], [], None
+    for j in range(n):
+        d = A[j, j] - sum((L[j][k] * W[j][k] for k in range(j)), zero)
+        d = jnp.where(d > 0, d, jnp.nan)
+        inv_d = 1.0 / d
+        for i in range(j + 1, n):
+            W[i][j] = A[i, j] - sum((W[i][k] * L[j][k] for k in range(j)), zero)
+            L[i][j] = W[i][j] * inv_d
+        y.append(v[j] - sum((L[j][k] * y[k] for k in range(j)), zero))
+        t = y[j] * y[j] * inv_d
+        total = t if total is None else total + t
+        D.append(d)
+    return total, D
+
+
 def mahalanobis2(A, v):
-    """vᵀ A⁻¹ v for symmetric positive-definite A (NaN if A is not)."""
-    y = _forward(cholesky(A), v)
-    return sum_elements(y * y)
+    """vᵀ A⁻¹ v for symmetric positive-definite A (NaN if A is not), by A = L D Lᵀ."""
+    return _ldl_whitened(A, v)[0]
 
 
 def mahalanobis2_logdet(A, v):
-    """(vᵀ A⁻¹ v, log det A) for symmetric positive-definite A (NaN if A is not)."""
-    L = cholesky(A)
-    y = _forward(L, v)
-    return sum_elements(y * y), 2.0 * sum_elements(jnp.log(jnp.diagonal(L)))
+    """(vᵀ A⁻¹ v, log det A) for symmetric positive-definite A (NaN if A is not), by A = L D Lᵀ:
+    log det A = Σⱼ log Dⱼ."""
+    m2, D = _ldl_whitened(A, v)
+    logdet = jnp.log(D[0])
+    for d in D[1:]:
+        logdet = logdet + jnp.log(d)
+    return m2, logdet
 
 
 def spd_inverse(A):
