@@ -312,7 +312,36 @@ def check_key(where: str, name: str, key):
 _ABSENT = object()  # an argument a factory does not take (None is a value given, and refused)
 
 
-def check_state_space(where: str, *, Q, R, F=_ABSENT, H=_ABSENT, f=_ABSENT, h=_ABSENT, angle_mask=None):
+def check_columns(where: str, n: int, columns):
+    """``columns`` (an update's state components, ``filters.blocks.innovation_update``) if it is
+    None or a tuple of increasing components of a state of n; else one refusal."""
+    if columns is None:
+        return None
+    if not (isinstance(columns, tuple) and columns and all(isinstance(k, int) and 0 <= k < n for k in columns)
+            and list(columns) == sorted(set(columns))):
+        raise refuse(where, "columns", columns, f"must be None or a tuple of increasing state components in 0..{n - 1}")
+    return columns
+
+
+def check_h_columns(where: str, h, n: int, columns):
+    """``check_columns``, and that h reads no state component outside ``columns``: ∂h/∂x is zero
+    outside them at three random states."""
+    if check_columns(where, n, columns) is None:
+        return
+    import jax
+    import jax.numpy as jnp
+
+    others = [k for k in range(n) if k not in columns]
+    for x in np.random.default_rng(0).normal(0.0, 1e3, (3, n)):
+        J = np.asarray(jax.jacfwd(h)(jnp.asarray(x)))
+        read = [k for k in others if np.any(J[:, k] != 0)]
+        if read:
+            raise refuse(where, "columns", columns, f"h reads state component {read[0]} as well "
+                         f"(∂h/∂x[{read[0]}] is not zero): name every component h reads")
+
+
+def check_state_space(where: str, *, Q, R, F=_ABSENT, H=_ABSENT, f=_ABSENT, h=_ABSENT, angle_mask=None,
+                      columns=None):
     """A Gaussian state-space model as a filter factory takes it: x' = F x + w (or f(x) + w),
     z = H x + v (or h(x) + v), w ~ N(0, Q), v ~ N(0, R). Each matrix numbers, finite and of its
     shape: F (n, n), H (m, n), Q (n, n) symmetric positive semi-definite (a process noise
@@ -342,6 +371,7 @@ def check_state_space(where: str, *, Q, R, F=_ABSENT, H=_ABSENT, f=_ABSENT, h=_A
         check_traces(where, "f", f, n, (n,), f"x (n,) -> f(x) ({n},) (n = {n}, from Q)")
     if h is not _ABSENT:
         check_traces(where, "h", h, n, (m,), f"x (n,) -> h(x) ({m},) (m = {m}, from R)")
+        check_h_columns(where, h, n, columns)
     if angle_mask is not None:
         flags = tuple(angle_mask) if isinstance(angle_mask, (list, tuple, np.ndarray)) else None
         if flags is None or len(flags) != m or not all(

@@ -21,6 +21,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from tracklab.checks import check_columns
 from tracklab.filters.core import Filter, Out, masked_meas, select
 from tracklab.linalg import jacobian, mm, spd_inverse, symmetrise
 from tracklab.sensors.geometry import wrap
@@ -99,14 +100,9 @@ def _identity_minus(KH, columns, B):
     return out
 
 
-def check_columns(where: str, n: int, columns):
-    """``ValueError`` unless ``columns`` is None or increasing state components (of n)."""
-    if columns is None:
-        return
-    ok = (isinstance(columns, tuple) and len(columns) > 0 and all(isinstance(k, int) and 0 <= k < n for k in columns)
-          and list(columns) == sorted(set(columns)))
-    if not ok:
-        raise ValueError(f"{where}: columns {columns!r}: expected a tuple of increasing state components in 0..{n - 1}")
+def _components(a, columns, axis=0):
+    """``a``'s entries ``columns`` along ``axis`` (static slices, stacked)."""
+    return jnp.stack([jax.lax.index_in_dim(a, k, axis, keepdims=False) for k in columns], axis=axis)
 
 
 def _check_shapes(where: str, g: Gaussian, columns=None, **arrays):
@@ -153,8 +149,8 @@ def innovation_update(g: Gaussian, nu, H, R, *, present=None, columns=None) -> U
         PHt = mm(g.P, H.T)
         S = mm(H, PHt) + R
     else:
-        PHt = mm(jnp.stack([g.P[:, k] for k in columns], axis=-1), H.T)
-        S = mm(H, jnp.stack([PHt[k] for k in columns])) + R
+        PHt = mm(_components(g.P, columns, axis=1), H.T)  # the columns of P that H reads
+        S = mm(H, _components(PHt, columns)) + R
     K = mm(PHt, spd_inverse(S))
     return Update(g.x + mm(K, nu), joseph_covariance(g.P, K, H, R, columns), nu, S, used)
 
@@ -171,7 +167,7 @@ def update(g: Gaussian, z, H, R, *, h_x=None, angles=None, present=None, columns
     """
     _check_shapes("update", g, columns, z=z, H=H, h_x=h_x)
     if h_x is None:
-        h_x = mm(H, g.x if columns is None else jnp.stack([g.x[k] for k in columns]))
+        h_x = mm(H, g.x if columns is None else _components(g.x, columns))
     nu = innovation(z, h_x, angles)
     return innovation_update(g, nu, H, R, present=jnp.isfinite(z) if present is None else present, columns=columns)
 
