@@ -175,7 +175,7 @@ def run_samples(r: RunErrors, w_k):
     w_report = w_k[0]
     ep, ev = r.e[0::2], r.e[1::2]
     upd = r.valid.astype(ep.dtype)
-    report = jnp.concatenate([jnp.sum(ev**2, 0)[None], ep**2, ep, ev, r.nees[None], (r.nis * upd)[None], upd[None]])
+    report = jnp.concatenate([sum_elements(ev**2)[None], ep**2, ep, ev, r.nees[None], (r.nis * upd)[None], upd[None]])
     rows = [w_report * report]
     for j in range(w_k.shape[0]):
         rows.append(w_k[j] * r.e_pred**2)
@@ -218,8 +218,8 @@ def lane_sums(r: RunErrors, ok, runmax, w_k, dtype, lost=None):
         "sumsq_pred": e_pred**2,
         "sum4_pos": ep**4,  # for the per-step RMSE's interval
         "sum4_vel": ev**4,
-        "sumsq2_pos": jnp.sum(ep**2, 0)[None] ** 2,
-        "sumsq2_vel": jnp.sum(ev**2, 0)[None] ** 2,
+        "sumsq2_pos": sum_elements(ep**2)[None] ** 2,
+        "sumsq2_vel": sum_elements(ev**2)[None] ** 2,
         "sum_validated": jnp.where(ok & jnp.isfinite(r.validated), r.validated, 0.0)[None],
         "count_scans": (ok & jnp.isfinite(r.validated)).astype(dtype)[None],
         "lost": (jnp.zeros_like(ok) if lost is None else lost).astype(dtype)[None],

@@ -160,10 +160,10 @@ def _chunk(structure: TrackingStructure):
         elif stream:  # each run's truth advanced step by step
             truth0 = jnp.broadcast_to(jnp.asarray(scenario.initial_state(), dtype), (B, 2 * d))
             src = None
-        else:  # drawn whole, read step by step (time-major)
-            truth_all = jax.vmap(scenario.simulate, out_axes=1)(k_truth).astype(dtype)  # (T+1, B, 2d)
-            z_all = jax.vmap(sensor.measure, in_axes=(0, 1), out_axes=1)(k_meas, truth_all[1:, :, 0::2])
-            truth0, src = truth_all[0], (truth_all[1:], z_all)
+        else:  # drawn whole, read step by step (time-major, the truth's runs last)
+            truth_all = jax.vmap(scenario.simulate, out_axes=-1)(k_truth).astype(dtype)  # (T+1, 2d, B)
+            z_all = jax.vmap(sensor.measure, in_axes=(0, -1), out_axes=1)(k_meas, truth_all[1:, 0::2])
+            truth0, src = truth_all[0].T, (truth_all[1:], z_all)
         prior = prior_means(truth0, k_prior, L0.astype(dtype))
         n_live = jnp.sum(live.astype(dtype))
         reports_by_sensor = jnp.asarray(report_masks, dtype)  # (steps, sensors)
@@ -254,20 +254,22 @@ def _chunk(structure: TrackingStructure):
                 truth_k, z_k = src_k
             else:
                 accel_k, meas_k = src_k
-                truth_k = jax.vmap(scenario.advance)(truth_prev, accel_k) if scenario.per_run else table[k + 1]
-                z_k = jax.vmap(sensor.measure_step, in_axes=(0, None, None, 0 if truth_batched else None))(
-                    meas_k, k, T, truth_k[..., 0::2])
-            out = {"_example": {"truth": truth_k[0] if truth_batched else truth_k, "z": z_k[0]}}
+                truth_k = (runs_last(scenario.advance, in_axes=(-1, -1), size=B)(truth_prev, accel_k.T)
+                           if scenario.per_run else table[k + 1])
+                z_k = jax.vmap(sensor.measure_step, in_axes=(0, None, None, -1 if truth_batched else None))(
+                    meas_k, k, T, truth_k[0::2])
+            out = {"_example": {"truth": truth_k[:, 0] if truth_batched else truth_k, "z": z_k[0]}}
             if cluttered is not None:  # the scans that passed their capacity
                 over_k = jax.vmap(cluttered.overflowed, in_axes=(0, 0, None, None, None))(*over_k, k, T, dtype)
                 out["_overflowed_scans"] = jnp.sum((live & over_k).astype(dtype))
                 overflowed = overflowed | over_k
             if with_bound:  # expected measurement information at the true positions, for the PCRLB
-                pos_k = truth_k[..., 0::2]
+                pos_k = truth_k[0::2]
                 info = 0.0
                 for j, s in enumerate(sensor.sensors):
                     if truth_batched:
-                        I = jnp.sum(jnp.where(live[:, None, None], jax.vmap(s.information)(pos_k), 0.0), axis=0)
+                        I = jnp.sum(jnp.where(live[:, None, None], jax.vmap(s.information, in_axes=-1)(pos_k), 0.0),
+                                    axis=0)
                     else:
                         I = n_live * s.information(pos_k)
                     info = info + reports_by_sensor[k, j] * I
@@ -287,12 +289,12 @@ def _chunk(structure: TrackingStructure):
                     z_f = zv_k[i] if not stream else (z_k if lanes[i].view is None else lanes[i].view(z_k))
                     if runs_axis == -1:
                         z_f = jnp.moveaxis(z_f, 0, -1)
-                    truth_in = jnp.moveaxis(truth_k, 0, runs_axis) if truth_batched else truth_k
+                    truth_in = jnp.moveaxis(truth_k, -1, runs_axis) if truth_batched else truth_k
                     state, out_i = steps[i](state, (z_f, truth_in, t_k, present_k, reports_k))
                     new_states.append(state)
                     outs.append(out_i)
                 r = group_errors(g, outs)
-                x_first = r.e[:, :, 0] + (truth_k[0] if truth_batched else truth_k)  # run 0's estimate
+                x_first = r.e[:, :, 0] + (truth_k[:, 0] if truth_batched else truth_k)  # run 0's estimate
                 first = jnp.concatenate([x_first, r.var[:, :, 0]], axis=1)  # and its variances
                 new_carries.append((tuple(new_states), (r, first), bad_any, per_run_acc, loss))
             return (truth_k if (stream and scenario.per_run) else None, w_k, new_carries, overflowed), out
@@ -307,7 +309,8 @@ def _chunk(structure: TrackingStructure):
         if cluttered is not None:  # its detection and false-alarm count draws, time-major
             mine = meas_draws[0] if stream else jax.vmap(lambda key: sensor.draws(key, T), out_axes=1)(k_meas)[0]
             over_in = (mine[0][1], mine[1])
-        carry0 = (truth0 if (stream and scenario.per_run) else None, jnp.zeros((len(names),), bool), carries,
+        # each run's truth (2d, runs), the runs last as the filters take it
+        carry0 = (truth0.T if (stream and scenario.per_run) else None, jnp.zeros((len(names),), bool), carries,
                   jnp.zeros((B,), bool))
         again = lambda a: jnp.concatenate([a, a[-1:]])
         w_masks = jnp.asarray(window_mask(windows))  # (T, windows)
