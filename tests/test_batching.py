@@ -2,7 +2,7 @@
 primitive it batches by a rule of its own (elementwise with NumPy broadcasting, slices, reshapes,
 transposes, reductions, concatenation, splits, padding, slices at shared offsets, matrix products with either operand shared, a
 ``cond`` on a shared predicate, nested ``jit``) and for those it hands to ``vmap`` (a Cholesky
-factor, a triangular solve, a loop (``scan``), a ``cond`` on a per-run predicate, a custom derivative)."""
+factor, a triangular solve, a loop (``scan``), a ``cond`` on a per-run predicate, a custom derivative); and which of a filter's errors the chunk carries once."""
 
 import jax
 import jax.numpy as jnp
@@ -77,3 +77,33 @@ def test_runs_last_refuses_a_shared_output_that_depends_on_the_runs():
     f = runs_last(lambda x, a: (x * a, a + x.sum()), in_axes=(-1, None), out_axes=(-1, None))
     with pytest.raises(ValueError, match="shared"):
         f(np.ones((2, 4)), 1.0)
+
+
+@pytest.mark.parametrize("varying", [("e", "x_sum", "nu", "e_pred"), ("e", "Pe", "x_sum", "nu", "S", "valid", "e_pred")])
+def test_the_errors_carried_once_are_the_same_in_every_run(varying):
+    """``lanes.errors_dependence``: the chunk carries a field of the errors once where it says the
+    field is the same in every run. Error inputs of five runs that differ where ``varying`` says
+    (a linear KF's: its covariance and S shared; an EKF's with a gate: every matrix per run): each
+    field it calls shared is equal in every run; it calls the KF's variances and log det S shared,
+    never a field outside ``MAY_BE_SHARED``, and nothing that reads a per-run input."""
+    from tracklab.worlds.tracking.errors import MAY_BE_SHARED, ErrorInputs, errors_of
+    from tracklab.worlds.tracking.lanes import errors_dependence
+
+    rng = np.random.default_rng(3)
+    G = rng.normal(size=(5, 4, 4))
+    one = {"e": rng.normal(size=(5, 4)), "Pe": G @ np.swapaxes(G, 1, 2) + np.eye(4), "x_sum": rng.normal(size=5),
+           "nu": rng.normal(size=(5, 2)), "S": G[:, :2, :2] @ np.swapaxes(G[:, :2, :2], 1, 2) + np.eye(2),
+           "valid": rng.uniform(size=5) < 0.5, "dof": np.full(5, 2.0), "e_pred": rng.normal(size=(5, 2)),
+           "validated": np.full(5, np.nan), "existence": np.full(5, np.nan)}
+    runs = ErrorInputs(**{k: v if k in varying else np.broadcast_to(v[:1], v.shape) for k, v in one.items()})
+    shapes = jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), runs)
+    flags = [k in varying for k in ErrorInputs._fields]
+    shared = errors_dependence(shapes, flags, jnp.float64)
+    errors = jax.vmap(lambda a: errors_of(a, jnp.float64))(runs)
+    for name, s, v in zip(shared._fields, shared, errors):
+        assert not s or name in MAY_BE_SHARED
+        if s:
+            np.testing.assert_array_equal(np.asarray(v), np.broadcast_to(np.asarray(v)[:1], np.shape(v)), err_msg=name)
+    reads = {"var": {"Pe"}, "logdet_s": {"S", "valid"}, "valid": {"valid"}}  # of the inputs, beside the constants
+    assert {n for n, s in zip(shared._fields, shared) if s} == {n for n in MAY_BE_SHARED
+                                                                if not reads.get(n, set()) & set(varying)}

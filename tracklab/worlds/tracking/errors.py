@@ -25,7 +25,8 @@ from tracklab.montecarlo.statistics import REPORT_WINDOW
 
 
 class RunErrors(NamedTuple):
-    """One filter's errors at one step, per run (batched with the runs last: (…, runs))."""
+    """One filter's errors at one step, per run (batched with the runs last: (…, runs)); a field of
+    ``MAY_BE_SHARED`` that is the same in every run may have a runs axis of 1 instead."""
 
     e: Any  # (2d,) estimate minus truth, CV layout
     nees: Any
@@ -46,6 +47,11 @@ class RunErrors(NamedTuple):
         no = jnp.zeros((B,), bool)
         nan = jnp.full((B,), jnp.nan, dtype)
         return cls(z(2 * d), z(), z(), no, z(), no, z(), z(d), z(2 * d), nan, nan)
+
+# the fields that the sums and samples read only against a per-run value (a run's ``ok``, its NIS)
+# or at run 0: the chunk carries them once, with a runs axis of 1, where they are the same in every
+# run (a linear KF's variances and log det S, a filter's constant dof, validated and existence)
+MAY_BE_SHARED = ("valid", "dof", "logdet_s", "var", "validated", "existence")
 
 def pick(a, idx, axis=0):
     """``a``'s entries ``idx`` (known at trace time) along ``axis`` by static slices, which fuse
@@ -174,7 +180,7 @@ def run_samples(r: RunErrors, w_k):
     window first (``with_report_window``)."""
     w_report = w_k[0]
     ep, ev = r.e[0::2], r.e[1::2]
-    upd = r.valid.astype(ep.dtype)
+    upd = jnp.broadcast_to(r.valid, r.nees.shape).astype(ep.dtype)
     report = jnp.concatenate([sum_elements(ev**2)[None], ep**2, ep, ev, r.nees[None], (r.nis * upd)[None], upd[None]])
     rows = [w_report * report]
     for j in range(w_k.shape[0]):

@@ -27,7 +27,7 @@ from tracklab.filters.fusion import view_of
 from tracklab.models import MODELS, cv, cv_index, interleaved
 from tracklab.pytree import like, traced_key
 from tracklab.sensors.clutter import cluttered_of
-from tracklab.worlds.tracking.errors import error_inputs
+from tracklab.worlds.tracking.errors import MAY_BE_SHARED, RunErrors, error_inputs, errors_of
 
 
 class Realised(NamedTuple):
@@ -284,6 +284,14 @@ def _tainted(jaxpr, flags):
         if any(not isinstance(v, jax.extend.core.Literal) and v in dep for v in eqn.invars):
             dep.update(eqn.outvars)
     return [not isinstance(v, jax.extend.core.Literal) and v in dep for v in jaxpr.outvars]
+
+def errors_dependence(inputs, varies, dtype) -> RunErrors:
+    """Per field of a filter's errors (``errors_of`` of error inputs shaped as ``inputs``, whose leaves
+    flagged in ``varies`` differ between runs): True where it is the same in every run, for the
+    fields of ``MAY_BE_SHARED`` (the others are always taken as per run)."""
+    closed, _ = _traced(lambda a: errors_of(a, dtype), (inputs,))
+    depends = _tainted(closed.jaxpr, list(varies))
+    return RunErrors(*[not dep and name in MAY_BE_SHARED for name, dep in zip(RunErrors._fields, depends)])
 
 def run_dependence(init, body, prior, z_k, truth_k, fixed, may_share):
     """How a filter's step depends on the run: (for its state, a pytree of whether each leaf is the same in

@@ -6,7 +6,8 @@ filter steps (``batching.runs_last``: batched over the runs, the runs last in ev
 (and maxima). The random draws of the whole chunk are made first, in float32
 (``tracklab.random``), so nothing of size (runs × steps) is kept in the working precision. One
 scan serves every compared filter, and a filter state that is the same in every run (a linear
-KF's covariance when the report pattern is) is carried once, not per run. Filters whose errors
+KF's covariance when the report pattern is) is carried once, not per run, and so are the errors
+that are (its variances and log det S: ``errors.MAY_BE_SHARED``, ``lanes.errors_dependence``). Filters whose errors
 have the same shapes are a group: their errors and per-step sums are computed together along a
 leading filter axis.
 
@@ -54,7 +55,7 @@ from tracklab.worlds.tracking.errors import (
     window_sums,
     with_errors,
 )
-from tracklab.worlds.tracking.lanes import lane, run_dependence, view_pattern
+from tracklab.worlds.tracking.lanes import errors_dependence, lane, run_dependence, view_pattern
 
 
 @dataclass(frozen=True)
@@ -184,7 +185,7 @@ def _chunk(structure: TrackingStructure):
         # scans in clutter: their association over a scan's returns runs faster with the runs first
         # (plain vmap; benchmarks/README.md)
         runs_axis = 0 if cluttered is not None else -1
-        state_axes, states0, err_axes, kinds, bodies = [], [], [], [], []
+        state_axes, states0, err_axes, kinds, bodies, err_shared = [], [], [], [], [], []
         for ln in lanes:
             fixed = (t, ln.present, jnp.asarray(ln.reports))
             m_f = ln.pattern.shape[1]
@@ -200,6 +201,9 @@ def _chunk(structure: TrackingStructure):
             in_tree = jax.tree_util.tree_structure(inputs)
             err_axes.append(jax.tree_util.tree_unflatten(in_tree, [-1 if v else None for v in varies]))
             kinds.append((in_tree, tuple((a.shape, a.dtype) for a in jax.tree_util.tree_leaves(inputs)), tuple(varies)))
+            # and of its errors, those the same in every run are carried once (a runs axis of 1)
+            err_shared.append(errors_dependence(inputs, varies, dtype))
+        errors_axes = [RunErrors(*[None if s else -1 for s in shared]) for shared in err_shared]
         # filters whose error inputs have the same shapes form a group: their errors, per-step sums
         # and per-run samples are computed together, one set of kernels for the group. A filter
         # alone has its errors made inside its own batched step, where XLA fuses them with
@@ -212,14 +216,15 @@ def _chunk(structure: TrackingStructure):
         for g in groups:
             for i in g:
                 alone = len(g) == 1
-                body, out_axes = (with_errors(bodies[i], dtype), -1) if alone else (bodies[i], err_axes[i])
+                body, out_axes = (with_errors(bodies[i], dtype), errors_axes[i]) if alone else (bodies[i], err_axes[i])
                 batch = jax.vmap if runs_axis == 0 else functools.partial(runs_last, size=B)
                 steps[i] = batch(body, in_axes=(state_axes[i], (runs_axis, runs_axis if truth_batched else None, None,
                                                                 None, None)), out_axes=(state_axes[i], out_axes))
         carries = []
         for g in groups:
             L = len(g)
-            no_errors = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (L,) + a.shape), RunErrors.zeros(d, B, dtype))
+            no_errors = RunErrors(*[jnp.broadcast_to(a[..., :1] if s else a, (L,) + a.shape[:-1] + (1 if s else B,))
+                                    for a, s in zip(RunErrors.zeros(d, B, dtype), err_shared[g[0]])])
             nothing = (no_errors, jnp.zeros((L, 4 * d), dtype))
             carries.append((tuple(states0[i] for i in g), nothing, jnp.zeros((L, B), bool),
                             (jnp.zeros((L, len(names), d + 1, B), dtype), jnp.zeros((L, n_acc, B), dtype)),
@@ -227,12 +232,17 @@ def _chunk(structure: TrackingStructure):
 
         def group_errors(g, outs):
             """The errors (lanes, …, runs) of a group's filters from their steps' outputs: their
-            error inputs, or for a filter alone the errors it made in its step."""
+            error inputs, or for a filter alone the errors it made in its step (a field the same in
+            every run with a runs axis of 1)."""
+            shared = err_shared[g[0]]
             if len(g) == 1:
-                return jax.tree_util.tree_map(lambda a: a[None], outs[0])
-            stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *outs)
-            per_run = runs_last(lambda a: errors_of(a, dtype), in_axes=(err_axes[g[0]],), out_axes=-1, size=B)
-            return jax.vmap(per_run)(stacked)
+                r = jax.tree_util.tree_map(lambda a: a[None], outs[0])
+            else:
+                stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *outs)
+                per_run = runs_last(lambda a: errors_of(a, dtype), in_axes=(err_axes[g[0]],),
+                                    out_axes=errors_axes[g[0]], size=B)
+                r = jax.vmap(per_run)(stacked)
+            return RunErrors(*[a[..., None] if s else a for a, s in zip(r, shared)])
 
         def group_stats(g, pending, w_k, bad_any, per_run_acc, loss):  # w_k: the step before's windows
             r, first = pending
