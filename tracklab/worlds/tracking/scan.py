@@ -7,9 +7,9 @@ filter steps (``batching.runs_last``: batched over the runs, the runs last in ev
 (``tracklab.random``), so nothing of size (runs × steps) is kept in the working precision. One
 scan serves every compared filter, and a filter state that is the same in every run (a linear
 KF's covariance when the report pattern is) is carried once, not per run, and so are the errors
-that are (its variances and log det S: ``errors.MAY_BE_SHARED``, ``lanes.errors_dependence``). Filters whose errors
-have the same shapes are a group: their errors and per-step sums are computed together along a
-leading filter axis.
+that are (its variances and log det S: ``errors.MAY_BE_SHARED``, ``lanes.errors_dependence``).
+Filters whose errors have the same shapes are a group: their errors and per-step sums are
+computed together along a leading filter axis.
 
 Every number — scenario, sensors, prior, filters — is a leaf of ``TrackingParams``, an argument
 of the compiled program; ``TrackingStructure`` (the filters' kinds, models and views, the report
