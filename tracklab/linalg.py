@@ -112,6 +112,15 @@ def _forward(L, v):
     return jnp.stack(y)
 
 
+def pick(a, idx, axis=0):
+    """``a``'s entries ``idx`` (known at trace time) along ``axis`` by static slices, which fuse
+    with what reads them (indexing by an index array is a gather, a kernel of its own)."""
+    idx = [int(i) for i in idx]
+    if idx == list(range(idx[0], idx[0] + len(idx))):
+        return jax.lax.slice_in_dim(a, idx[0], idx[0] + len(idx), axis=axis)
+    return jnp.stack([jax.lax.index_in_dim(a, i, axis, keepdims=False) for i in idx], axis=axis)
+
+
 def sum_elements(v):
     """The sum of a short vector's elements as a chain of elementwise adds.
 

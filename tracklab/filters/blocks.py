@@ -23,7 +23,7 @@ import jax.numpy as jnp
 
 from tracklab.checks import check_columns
 from tracklab.filters.core import Filter, Out, masked_meas, select
-from tracklab.linalg import jacobian, mm, spd_inverse, symmetrise
+from tracklab.linalg import jacobian, mm, pick, spd_inverse, symmetrise
 from tracklab.sensors.geometry import wrap
 
 wrap_angle = wrap  # an angle wrapped to (-π, π]
@@ -100,11 +100,6 @@ def _identity_minus(KH, columns, B):
     return out
 
 
-def _components(a, columns, axis=0):
-    """``a``'s entries ``columns`` along ``axis`` (static slices, stacked)."""
-    return jnp.stack([jax.lax.index_in_dim(a, k, axis, keepdims=False) for k in columns], axis=axis)
-
-
 def _check_shapes(where: str, g: Gaussian, columns=None, **arrays):
     """``ValueError`` when the arrays of an update do not fit one measurement of m components (H's
     rows) and the state of n = len(g.x): z, h_x, nu, present (m,), H (m, n) (with ``columns``:
@@ -149,8 +144,8 @@ def innovation_update(g: Gaussian, nu, H, R, *, present=None, columns=None) -> U
         PHt = mm(g.P, H.T)
         S = mm(H, PHt) + R
     else:
-        PHt = mm(_components(g.P, columns, axis=1), H.T)  # the columns of P that H reads
-        S = mm(H, _components(PHt, columns)) + R
+        PHt = mm(pick(g.P, columns, axis=1), H.T)  # the columns of P that H reads
+        S = mm(H, pick(PHt, columns)) + R
     K = mm(PHt, spd_inverse(S))
     return Update(g.x + mm(K, nu), joseph_covariance(g.P, K, H, R, columns), nu, S, used)
 
@@ -167,7 +162,7 @@ def update(g: Gaussian, z, H, R, *, h_x=None, angles=None, present=None, columns
     """
     _check_shapes("update", g, columns, z=z, H=H, h_x=h_x)
     if h_x is None:
-        h_x = mm(H, g.x if columns is None else _components(g.x, columns))
+        h_x = mm(H, g.x if columns is None else pick(g.x, columns))
     nu = innovation(z, h_x, angles)
     return innovation_update(g, nu, H, R, present=jnp.isfinite(z) if present is None else present, columns=columns)
 

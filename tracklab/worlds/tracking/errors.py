@@ -20,7 +20,7 @@ import jax.extend
 import jax.numpy as jnp
 import numpy as np
 
-from tracklab.linalg import mahalanobis2, mahalanobis2_logdet, norm, sum_elements
+from tracklab.linalg import mahalanobis2, mahalanobis2_logdet, norm, pick, sum_elements
 from tracklab.montecarlo.statistics import REPORT_WINDOW
 
 
@@ -52,14 +52,6 @@ class RunErrors(NamedTuple):
 # or at run 0: the chunk carries them once, with a runs axis of 1, where they are the same in every
 # run (a linear KF's variances and log det S, a filter's constant dof, validated and existence)
 MAY_BE_SHARED = ("valid", "dof", "logdet_s", "var", "validated", "existence")
-
-def pick(a, idx, axis=0):
-    """``a``'s entries ``idx`` (known at trace time) along ``axis`` by static slices, which fuse
-    with what reads them (indexing by an index array is a gather, a kernel of its own)."""
-    idx = [int(i) for i in idx]
-    if idx == list(range(idx[0], idx[0] + len(idx))):
-        return jax.lax.slice_in_dim(a, idx[0], idx[0] + len(idx), axis=axis)
-    return jnp.stack([jax.lax.index_in_dim(a, i, axis, keepdims=False) for i in idx], axis=axis)
 
 class ErrorInputs(NamedTuple):
     """What a filter's output at one step gives its errors (one run): picked in the filter's

@@ -39,6 +39,7 @@ import numpy as np
 
 from tracklab import random
 from tracklab.batching import runs_last
+from tracklab.linalg import pick
 from tracklab.montecarlo import runner
 from tracklab.montecarlo.statistics import REPORT_WINDOW
 from tracklab.sensors import SensorSuite
@@ -49,7 +50,6 @@ from tracklab.worlds.tracking.errors import (
     accumulated_lengths,
     errors_of,
     lane_sums,
-    pick,
     run_samples,
     track_loss,
     window_sums,
@@ -223,8 +223,8 @@ def _chunk(structure: TrackingStructure):
         carries = []
         for g in groups:
             L = len(g)
-            no_errors = RunErrors(*[jnp.broadcast_to(a[..., :1] if s else a, (L,) + a.shape[:-1] + (1 if s else B,))
-                                    for a, s in zip(RunErrors.zeros(d, B, dtype), err_shared[g[0]])])
+            no_errors = RunErrors(*[jnp.broadcast_to(a1 if s else a, (L,) + (a1 if s else a).shape) for a, a1, s in
+                                    zip(RunErrors.zeros(d, B, dtype), RunErrors.zeros(d, 1, dtype), err_shared[g[0]])])
             nothing = (no_errors, jnp.zeros((L, 4 * d), dtype))
             carries.append((tuple(states0[i] for i in g), nothing, jnp.zeros((L, B), bool),
                             (jnp.zeros((L, len(names), d + 1, B), dtype), jnp.zeros((L, n_acc, B), dtype)),
