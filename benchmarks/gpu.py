@@ -9,6 +9,8 @@ airborne closed loop; the servo). Each runs in a fresh process (its peak device 
 own), once per precision, each time twice through the runner: the first call compiles (no
 persistent cache), the second is timed warm. Reported per file and precision:
 
+- the runs per chunk (the file's, or its world's default on the device: on a GPU, as many as
+  an eighth of its memory holds, ``runner.accelerator_runs``);
 - runs·steps/s of the warm call (a step: a filter period of the file; the closed loops' inner
   ticks are inside it), its wall time, and the compile time of the first call;
 - peak device memory (``memory_stats()["peak_bytes_in_use"]`` of the first device; the host's
@@ -78,7 +80,8 @@ def one(path: str, runs: int | None) -> dict:
     if getattr(exp, "estimators", None):  # the servo: a DEKF's training before the runs is not the runner
         exp.estimators = [dataclasses.replace(e, train_steps=0) for e in exp.estimators]
     out = {"file": path, "backend": jax.default_backend(), "device": str(jax.local_devices()[0]),
-           "devices": jax.device_count(), "steps": exp.steps, "precisions": {}}
+           "devices": jax.device_count(), "steps": exp.steps, "precisions": {},
+           "chunk": exp.structure(None, runs or exp.runs).chunk}  # the file's, or its default on this device
     for precision in ("float64", "float32"):
         with tempfile.TemporaryDirectory() as tmp:
             cold = exp.run(runs=runs, out=Path(tmp) / "a", figures=False, precision=precision)
@@ -113,16 +116,17 @@ def agreement(doc) -> tuple[float | None, float | None]:
 
 
 def table(docs) -> str:
-    lines = ["| kind | file | runs × steps | precision | runs·steps/s | warm wall (s) | compile (s) | peak memory (MB) |"
-             " f32 vs f64 (max rel. diff) | f64 rel. half-width (min) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| kind | file | runs × steps | chunk | precision | runs·steps/s | warm wall (s) | compile (s) |"
+             " peak memory (MB) | f32 vs f64 (max rel. diff) | f64 rel. half-width (min) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for kind, d in docs:
         diff, hw = agreement(d)
         for p in ("float64", "float32"):
             m = d["precisions"][p]
             agree = (f"{diff:.1e}" if diff is not None else "—") if p == "float32" else ""
             noise = (f"{hw:.1e}" if hw is not None else "—") if p == "float64" else ""
-            lines.append(f"| {kind} | `{Path(d['file']).name}` | {d['runs']} × {d['steps']} | {p} | {m['rate']:.3g} | "
+            lines.append(f"| {kind} | `{Path(d['file']).name}` | {d['runs']} × {d['steps']} | {d['chunk']} | {p} | "
+                         f"{m['rate']:.3g} | "
                          f"{m['wall_s']:.2f} | {m['compile_s']:.1f} | {m['peak_bytes'] / 1e6:.0f} ({m['peak_of']}) | "
                          f"{agree} | {noise} |")
     return "\n".join(lines) + "\n"

@@ -5,6 +5,7 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -213,3 +214,30 @@ def test_a_filters_statistics_do_not_depend_on_the_program_around_it(tmp_path):
           {k: v for k, v in ref.items() if k.split("/")[0] in moved}, "another order")
     alone = sums(load_experiment(_write(tmp_path, "alone", _every_kind(["EKF"]))))
     _same(alone, {k: v for k, v in ref.items() if k.startswith("EKF/")}, "alone")
+
+
+def test_on_an_accelerator_a_default_chunk_fills_a_share_of_its_memory(monkeypatch):
+    """Without a chunk in the file, a GPU's chunk is sized from its memory: a power of two per
+    device whose per-step arrays fill at most an eighth of it (capped), rounded to the runs asked
+    for; on the CPU the cache-sized chunks stay."""
+    from tracklab.worlds.tracking.scan import default_chunk
+
+    assert runner.accelerator_memory() is None  # the test machine's CPU
+    exp = load_experiment(Path(__file__).resolve().parents[1] / "experiments" / "lidar_crossing.toml")
+    devices = jax.device_count()
+    per_run = 8 * exp.steps * (2 * exp.scenario.dim + exp.sensor.m)
+    cpu = default_chunk(exp.scenario, exp.sensor)
+    assert cpu == 1000 * devices and runner.budget_chunk(1e6) == 128 * devices
+    for memory in (80 * 2**30, 64 * 2**20):
+        monkeypatch.setattr(runner, "accelerator_memory", lambda: memory)
+        chunk = default_chunk(exp.scenario, exp.sensor)
+        per_device = chunk // devices
+        assert chunk % devices == 0 and per_device & (per_device - 1) == 0
+        assert per_device * per_run <= memory * runner.ACCELERATOR_SHARE < 2 * per_device * per_run or \
+            per_device == runner.ACCELERATOR_RUNS
+        assert default_chunk(exp.scenario, exp.sensor, runs=10_000) == min(
+            chunk, devices * (1 << (-(-10_000 // devices) - 1).bit_length()))
+        closed = runner.budget_chunk(1e6) // devices  # a closed loop's run of a megabyte
+        assert closed & (closed - 1) == 0 and closed * 1e6 <= memory * runner.ACCELERATOR_SHARE < 2 * closed * 1e6
+        assert runner.budget_chunk(1e6, runs=3) == min(closed * devices, -(-3 // devices) * devices)
+    assert per_device == 2**int(np.log2(64 * 2**20 / 8 / per_run))  # the small device: its memory decides

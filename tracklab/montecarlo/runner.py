@@ -211,14 +211,48 @@ _KEEP = 32
 compiles = 0  # programs compiled (or loaded from disk) by this process
 
 
+# on an accelerator, the share of a device's memory that a chunk's per-run arrays may fill (the
+# rest holds XLA's temporaries: every filter's per-run intermediates of a step), and the most runs
+# a device's share of a chunk holds: far past the runs that keep all of a GPU's cores busy
+ACCELERATOR_SHARE = 1 / 8
+ACCELERATOR_RUNS = 2**18
+
+
+def accelerator_memory() -> int | None:
+    """Bytes of memory of each device on an accelerator (a GPU's ``memory_stats()["bytes_limit"]``,
+    the smallest over this process's devices); None on the CPU, where a chunk is sized for the
+    cache instead."""
+    devices = jax.local_devices()
+    if devices[0].platform == "cpu":
+        return None
+    limits = [(d.memory_stats() or {}).get("bytes_limit") for d in devices]
+    return int(min(limits)) if all(limits) else None
+
+
+def accelerator_runs(per_run_bytes: float) -> int | None:
+    """Runs per device of a chunk on an accelerator, for per-run arrays of ``per_run_bytes``: as
+    many as fill ``ACCELERATOR_SHARE`` of its memory, a power of two, at most
+    ``ACCELERATOR_RUNS`` and at least 1; None on the CPU."""
+    memory = accelerator_memory()
+    if memory is None:
+        return None
+    fit = int(memory * ACCELERATOR_SHARE // max(per_run_bytes, 1.0))
+    return int(np.clip(1 << max(fit, 1).bit_length() - 1, 1, ACCELERATOR_RUNS))
+
+
 def budget_chunk(per_run_bytes: float, runs: int | None = None, budget: int = 2**28) -> int:
     """Runs per chunk of a closed-loop world when the file does not say: as many as keep a chunk's
     per-run arrays (``per_run_bytes`` each) within ``budget`` bytes (256 MiB), at most 128 per
     device (larger shares run no faster on the CPU: each tracker's per-tick state leaves the cache;
-    ``benchmarks/bench_closed_loop.py``) and at least one, and no more than ``runs`` need (rounded
-    up to the devices): a closed-loop run is thousands of ticks, so dead runs padding a chunk cost."""
+    ``benchmarks/bench_closed_loop.py``) and at least one; on an accelerator as many as its memory
+    holds (``accelerator_runs``); no more than ``runs`` need (rounded up to the devices): a
+    closed-loop run is thousands of ticks, so dead runs padding a chunk cost."""
     devices = jax.device_count()
-    chunk = int(np.clip(budget // max(per_run_bytes, 1.0), devices, 128 * devices))
+    per_device = accelerator_runs(per_run_bytes)
+    if per_device is not None:
+        chunk = per_device * devices
+    else:
+        chunk = int(np.clip(budget // max(per_run_bytes, 1.0), devices, 128 * devices))
     return chunk if not runs else min(chunk, -(-int(runs) // devices) * devices)
 
 

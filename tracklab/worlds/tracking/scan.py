@@ -383,12 +383,19 @@ def default_chunk(scenario, sensor, budget=2**28, runs=None) -> int:
     """Runs per chunk when the experiment does not say: 1 000 per device (with several filters
     in the scan, larger shares run slower on the CPU: their states no longer stay in cache),
     fewer if a chunk's per-step arrays (truth and measurements of every run and step, 8 bytes
-    a value) would pass ``budget`` bytes (256 MiB), but at least 64; and no more than ``runs`` need,
-    rounded up to a power of two per device (every run of a chunk is computed, live or not), so
-    that nearby run counts, and any count from 1 000 per device up, share one compiled program."""
+    a value) would pass ``budget`` bytes (256 MiB), but at least 64; on an accelerator as many
+    per device as its memory holds of those arrays (``runner.accelerator_runs``: an eighth of it,
+    at most 2¹⁸); and no more than ``runs`` need, rounded up to a power of two per device (every
+    run of a chunk is computed, live or not), so that nearby run counts, and any count from the
+    largest chunk up, share one compiled program."""
     devices = jax.device_count()
     width = 2 * scenario.dim + sensor.m
-    chunk = int(np.clip(budget // (8 * scenario.steps * width), 64, 1000 * devices))
+    per_run = 8 * scenario.steps * width
+    on_accelerator = runner.accelerator_runs(per_run)
+    if on_accelerator is not None:
+        chunk = on_accelerator * devices
+    else:
+        chunk = int(np.clip(budget // per_run, 64, 1000 * devices))
     if runs:
         per_device = -(-int(runs) // devices)
         chunk = min(chunk, devices * (1 << (per_device - 1).bit_length()))
