@@ -20,12 +20,14 @@ import jax.numpy as jnp
 
 from tracklab.runtime import configure
 
+BASELINE = "baseline: the whole step, an add"
 
-def _cases(B):
-    """name -> (step's operation on a (2, B) value a, the carried (k, B) shape it adds to)."""
+
+def _cases():
+    """name -> (a step's operation on a (2, runs) value a, the rows it adds to the carry)."""
     rows = lambda a: [a[0], a[1], a[0] * a[1], a[0] - a[1], a[0] + a[1], a[0] * a[0], a[1] * a[1], a[0] / a[1]]
     return {
-        "baseline: the whole step, an add": (lambda a: a[0] + a[1], 1),
+        BASELINE: (lambda a: a[0] + a[1], 1),
         "multiply": (lambda a: a[0] * a[1], 1),
         "divide": (lambda a: a[0] / a[1], 1),
         "sqrt": (lambda a: jnp.sqrt(a[0] * a[0] + a[1] * a[1]), 1),
@@ -58,16 +60,12 @@ def main():
     ap.add_argument("--runs", type=int, nargs="+", default=[1000, 5000])
     args = ap.parse_args()
     configure(cpu_devices=1)
+    times = {B: {name: _step_time(op, width, B) for name, (op, width) in _cases().items()} for B in args.runs}
     print("| operation | " + " | ".join(f"ns per run and step ({B} runs)" for B in args.runs) + " |")
     print("|---|" + "---:|" * len(args.runs))
-    base = {B: _step_time(lambda a: a[0] + a[1], 1, B) for B in args.runs}
-    for name, (op, width) in _cases(args.runs[0]).items():
-        cells = []
-        for B in args.runs:
-            op_b, width_b = _cases(B)[name]
-            t = _step_time(op_b, width_b, B)
-            cells.append(f"{t / B * 1e9:.2f}" if name.startswith("baseline") else f"{(t - base[B]) / B * 1e9:.2f}")
-        print(f"| {name} | " + " | ".join(cells) + " |")
+    for name in _cases():  # the baseline whole, the others beyond it
+        cells = [(t[name] - (0.0 if name == BASELINE else t[BASELINE])) / B * 1e9 for B, t in times.items()]
+        print(f"| {name} | " + " | ".join(f"{c:.2f}" for c in cells) + " |")
 
 
 if __name__ == "__main__":

@@ -237,7 +237,19 @@ def accelerator_runs(per_run_bytes: float) -> int | None:
     if memory is None:
         return None
     fit = int(memory * ACCELERATOR_SHARE // max(per_run_bytes, 1.0))
-    return int(np.clip(1 << max(fit, 1).bit_length() - 1, 1, ACCELERATOR_RUNS))
+    return min(1 << (max(fit, 1).bit_length() - 1), ACCELERATOR_RUNS)
+
+
+def sized_chunk(per_run_bytes: float, budget: int, smallest: int, cpu_per_device: int) -> int:
+    """Runs per chunk, for per-run arrays of ``per_run_bytes``, when the file does not say: on an
+    accelerator ``accelerator_runs`` per device; on the CPU as many as keep them within ``budget``
+    bytes, at least ``smallest`` and at most ``cpu_per_device`` per device (a world's share that
+    still stays in the cache)."""
+    devices = jax.device_count()
+    per_device = accelerator_runs(per_run_bytes)
+    if per_device is not None:
+        return per_device * devices
+    return int(np.clip(budget // max(per_run_bytes, 1.0), smallest, cpu_per_device * devices))
 
 
 def budget_chunk(per_run_bytes: float, runs: int | None = None, budget: int = 2**28) -> int:
@@ -248,11 +260,7 @@ def budget_chunk(per_run_bytes: float, runs: int | None = None, budget: int = 2*
     holds (``accelerator_runs``); no more than ``runs`` need (rounded up to the devices): a
     closed-loop run is thousands of ticks, so dead runs padding a chunk cost."""
     devices = jax.device_count()
-    per_device = accelerator_runs(per_run_bytes)
-    if per_device is not None:
-        chunk = per_device * devices
-    else:
-        chunk = int(np.clip(budget // max(per_run_bytes, 1.0), devices, 128 * devices))
+    chunk = sized_chunk(per_run_bytes, budget, devices, 128)
     return chunk if not runs else min(chunk, -(-int(runs) // devices) * devices)
 
 

@@ -223,8 +223,9 @@ def _chunk(structure: TrackingStructure):
         carries = []
         for g in groups:
             L = len(g)
-            no_errors = RunErrors(*[jnp.broadcast_to(a1 if s else a, (L,) + (a1 if s else a).shape) for a, a1, s in
-                                    zip(RunErrors.zeros(d, B, dtype), RunErrors.zeros(d, 1, dtype), err_shared[g[0]])])
+            zeros = RunErrors(*[one if s else per_run for per_run, one, s in
+                                zip(RunErrors.zeros(d, B, dtype), RunErrors.zeros(d, 1, dtype), err_shared[g[0]])])
+            no_errors = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (L,) + a.shape), zeros)
             nothing = (no_errors, jnp.zeros((L, 4 * d), dtype))
             carries.append((tuple(states0[i] for i in g), nothing, jnp.zeros((L, B), bool),
                             (jnp.zeros((L, len(names), d + 1, B), dtype), jnp.zeros((L, n_acc, B), dtype)),
@@ -389,13 +390,7 @@ def default_chunk(scenario, sensor, budget=2**28, runs=None) -> int:
     run of a chunk is computed, live or not), so that nearby run counts, and any count from the
     largest chunk up, share one compiled program."""
     devices = jax.device_count()
-    width = 2 * scenario.dim + sensor.m
-    per_run = 8 * scenario.steps * width
-    on_accelerator = runner.accelerator_runs(per_run)
-    if on_accelerator is not None:
-        chunk = on_accelerator * devices
-    else:
-        chunk = int(np.clip(budget // per_run, 64, 1000 * devices))
+    chunk = runner.sized_chunk(8 * scenario.steps * (2 * scenario.dim + sensor.m), budget, 64, 1000)
     if runs:
         per_device = -(-int(runs) // devices)
         chunk = min(chunk, devices * (1 << (per_device - 1).bit_length()))
